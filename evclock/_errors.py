@@ -1,0 +1,85 @@
+"""The evclock exception hierarchy: every error evclock raises derives from EvClockError.
+
+Errors that are also a classic Python category (a bad value, a wrong type, a misuse at run
+time) derive from the matching built-in too, so ``except ValueError`` keeps working.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from ._jumps import TimeJump
+
+
+class EvClockError(Exception):
+    """Base class of every error raised by evclock."""
+
+
+class InvalidArgumentError(EvClockError, ValueError):
+    """A value is out of range: a negative, NaN or infinite duration, a zero rate, overflow."""
+
+
+class InvalidTypeError(EvClockError, TypeError):
+    """A value has the wrong type (for example a string where seconds were expected)."""
+
+
+class ClockMismatchError(EvClockError, TypeError):
+    """Times of different clock domains (SIM, SYSTEM, STEADY) were combined or compared."""
+
+
+class NoSimulationError(EvClockError, RuntimeError):
+    """Simulation time was asked for, but no simulation loop or driver is running."""
+
+
+class LoopClosedError(EvClockError, RuntimeError):
+    """The simulation loop was used after it was closed."""
+
+
+class NotRunningError(EvClockError, RuntimeError):
+    """An operation that needs a running loop (pause, step, ...) was called on an idle one."""
+
+
+class DeadlockError(EvClockError, RuntimeError):
+    """Every task waits and nothing can ever wake one: no timer, no physics, no I/O, no thread.
+
+    ``tasks`` lists the waiting tasks' descriptions.
+    """
+
+    def __init__(self, message: str, tasks: tuple[str, ...] = ()) -> None:
+        super().__init__(message)
+        self.tasks = tasks
+
+
+class StallError(EvClockError, RuntimeError):
+    """Work outside the loop (a thread, an executor job, I/O) held sim time for too long."""
+
+
+class PacingError(EvClockError, RuntimeError):
+    """Misuse of pacing controls, or (strict mode) the simulation lagged behind real time."""
+
+
+class LagError(PacingError):
+    """Strict pacing: the simulation fell further behind the requested real-time factor than allowed."""
+
+
+class ClockJumped(EvClockError):  # noqa: N818 - named after the event, like asyncio.CancelledError
+    """Raised in a task sleeping on sim time when the clock jumps (reset, restore).
+
+    ``jump`` describes the jump: its ``delta`` and the times before and after.
+    """
+
+    def __init__(self, jump: TimeJump) -> None:
+        super().__init__(
+            f"sim time jumped from {jump.before} to {jump.after} while sleeping; "
+            "the sleep was cancelled: re-compute the deadline from clock.now()"
+        )
+        self.jump = jump
+
+
+class PhysicsError(EvClockError, RuntimeError):
+    """The physics engine cannot be used: a disconnected client, a bad time step."""
+
+
+class SimTimeLimitError(EvClockError):
+    """A run or a test exceeded its sim-time limit."""
