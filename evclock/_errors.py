@@ -60,10 +60,10 @@ class PacingError(EvClockError, RuntimeError):
 
 
 class LagError(PacingError):
-    """Strict pacing: the simulation fell further behind the requested real-time factor than allowed."""
+    """Strict pacing: the simulation fell behind the requested real-time factor by too much."""
 
 
-class ClockJumped(EvClockError):  # noqa: N818 - named after the event, like asyncio.CancelledError
+class ClockJumped(EvClockError):
     """Raised in a task sleeping on sim time when the clock jumps (reset, restore).
 
     ``jump`` describes the jump: its ``delta`` and the times before and after.

@@ -1,0 +1,600 @@
+"""The simulation event loop: a real asyncio loop whose ``time()`` is simulation time.
+
+How one iteration works (DESIGN section 4):
+
+1. Run everything ready at the current sim time ``t``.
+2. Poll real I/O without blocking; what arrives is handled at ``t``.
+3. If work outside the loop is in flight (executor jobs, explicit holds, busy threads),
+   wait for it in wall time without moving sim time.
+4. Otherwise advance: the time source jumps (virtual time) or steps the physics toward the
+   next deadline, paced as requested; I/O is served while pacing waits.
+5. If nothing can ever happen - a deadlock - raise :class:`DeadlockError` naming the tasks.
+
+Scheduling is ours: one heap of ``(when_ns, seq, kind, obj)`` entries in integer
+nanoseconds, where ``seq`` makes timers due at the same time fire in the order they were
+scheduled. ``kind`` 0 is a sleep future resolved in place (``clock.sleep``); kind 1 a
+``TimerHandle`` (``call_at``, ``call_later``, ``asyncio.sleep``, timeouts). This is why
+``_run_once`` is overridden rather than merely the selector: asyncio's own heap orders
+timers by float ``when`` only, which is neither FIFO on ties nor exact.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import concurrent.futures
+import contextlib
+import contextvars
+import heapq
+import itertools
+import math
+import selectors
+import threading
+import time
+from asyncio import events, futures
+from collections.abc import Callable, Iterator
+from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
+
+from ._errors import (
+    DeadlockError,
+    InvalidArgumentError,
+    InvalidTypeError,
+    LoopClosedError,
+    NotRunningError,
+    StallError,
+)
+from ._jumps import JumpHandle, TimeJump
+from ._pacing import DEFAULT_MAX_LAG, Pacer
+from ._threads import busy_threads
+from ._time import SIM, Time
+from .sources import TimeSource, VirtualTimeSource
+
+if TYPE_CHECKING:
+    from ._clock import SimClock
+
+_T = TypeVar("_T")
+_Ts = TypeVarTuple("_Ts")
+
+_SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
+_SLEEP, _HANDLE = 0, 1
+
+#: Default wall-time limit for sim time being held by outside work or an I/O wait.
+DEFAULT_STALL_TIMEOUT = 60.0
+#: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
+_THREAD_POLL = 0.001
+
+
+def _check_stall_timeout(value: object) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidTypeError(
+            f"stall_timeout must be seconds (a number) or None, got {type(value).__name__}"
+        )
+    if math.isnan(value) or value <= 0:
+        raise InvalidArgumentError(
+            f"stall_timeout must be a positive number of wall seconds or None, got {value!r}"
+        )
+    return float(value)
+
+
+class SimEventLoop(asyncio.SelectorEventLoop):
+    """An asyncio event loop whose clock is simulation time.
+
+    ``asyncio.sleep``, ``asyncio.timeout``, ``wait_for``, ``call_later``/``call_at`` and
+    anyio's time functions all follow sim time on it. Time only moves when every task waits
+    (lockstep), exactly to the next deadline (virtual time) or in physics steps.
+
+    Create it directly, through ``asyncio.Runner(loop_factory=evclock.loop_factory(...))``
+    or with :func:`evclock.run`.
+
+    :param source: what owns sim time; default a :class:`VirtualTimeSource` starting at 0.
+    :param rtf: real-time factor: None = as fast as possible, 1.0 = real time, k = k x.
+    :param strict: raise :class:`LagError` when lagging more than ``max_lag`` behind ``rtf``.
+    :param max_lag: wall seconds a paced run may fall behind before re-anchoring (or raising).
+    :param stall_timeout: wall seconds sim time may be held by outside work (threads,
+        executor jobs) or by waiting for I/O before :class:`StallError`; None waits forever.
+    :param paused: start paused (see :meth:`resume` and :meth:`step`).
+    :param watch_threads: hold sim time while other non-daemon threads are busy (default).
+    """
+
+    if TYPE_CHECKING:
+        # asyncio internals this loop works with (they have no public equivalent).
+        _ready: collections.deque[asyncio.Handle]
+        _scheduled: list[Any]
+        _stopping: bool
+        _closed: bool
+        _timer_cancelled_count: int
+        _selector: selectors.BaseSelector
+        _thread_id: int | None
+        _current_handle: asyncio.Handle | None
+        _debug: bool
+
+        def _check_thread(self) -> None: ...
+
+        def _process_events(self, event_list: list[Any]) -> None: ...
+        def _check_callback(self, callback: object, method: str) -> None: ...
+
+    def __init__(
+        self,
+        source: TimeSource | None = None,
+        *,
+        rtf: float | None = None,
+        strict: bool = False,
+        max_lag: float = DEFAULT_MAX_LAG,
+        stall_timeout: float | None = DEFAULT_STALL_TIMEOUT,
+        paused: bool = False,
+        watch_threads: bool = True,
+        selector: Any = None,
+    ) -> None:
+        if source is None:
+            source = VirtualTimeSource()
+        elif not isinstance(source, TimeSource):
+            raise InvalidTypeError(
+                f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
+                f"got {type(source).__name__}"
+            )
+        self._stall_timeout = _check_stall_timeout(stall_timeout)
+        super().__init__(selector)
+        self._source = source
+        source.attach(self)
+        self._now_ns: int = source.now_ns
+        self._seq = itertools.count().__next__
+        self._io_map = self._selector.get_map()  # live view; the self-pipe is always in it
+        self._pacer = Pacer(
+            self._wait_io, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag
+        )
+        if paused:
+            self._pacer.pause()
+        self._holds = 0
+        self._holds_lock = threading.Lock()
+        self._held_since: float | None = None
+        self._watch_threads = bool(watch_threads)
+        self._jump_handlers: list[JumpHandle] = []
+        self._sim_clock: SimClock | None = None
+
+    # ----------------------------------------------------------------- time
+
+    def time(self) -> float:
+        """Sim time in float seconds (derived from the exact integer nanoseconds)."""
+        return self._now_ns / 1_000_000_000
+
+    def _get_now_ns(self) -> int:
+        return self._now_ns
+
+    @property
+    def now_ns(self) -> int:
+        """Sim time in integer nanoseconds."""
+        return self._now_ns
+
+    @property
+    def source(self) -> TimeSource:
+        """The time source that drives this loop."""
+        return self._source
+
+    @property
+    def clock(self) -> SimClock:
+        """The sim clock of this loop (what :func:`evclock.clock` returns on it)."""
+        clock = self._sim_clock
+        if clock is None:
+            from ._clock import SimClock
+
+            clock = self._sim_clock = SimClock(self)
+        return clock
+
+    # ------------------------------------------------------------ scheduling
+
+    def call_later(
+        self,
+        delay: float,
+        callback: Callable[[Unpack[_Ts]], object],
+        *args: *_Ts,
+        context: contextvars.Context | None = None,
+    ) -> asyncio.TimerHandle:
+        if delay is None:
+            raise TypeError("delay must not be None")
+        when_ns = self._now_ns + round(delay * 1e9)
+        return self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
+
+    def call_at(
+        self,
+        when: float,
+        callback: Callable[[Unpack[_Ts]], object],
+        *args: *_Ts,
+        context: contextvars.Context | None = None,
+    ) -> asyncio.TimerHandle:
+        if when is None:
+            raise TypeError("when cannot be None")
+        return self._call_at_ns(round(when * 1e9), when, callback, args, context)
+
+    def _call_at_ns(
+        self,
+        when_ns: int,
+        when: float,
+        callback: Callable[..., object],
+        args: tuple[Any, ...],
+        context: Any,
+    ) -> asyncio.TimerHandle:
+        self._check_closed()
+        if self._debug:
+            self._check_thread()
+            self._check_callback(callback, "call_at")
+        timer: Any = events.TimerHandle(when, callback, args, self, context)
+        if timer._source_traceback:
+            del timer._source_traceback[-1]
+        heapq.heappush(self._scheduled, (when_ns, self._seq(), _HANDLE, timer))
+        timer._scheduled = True
+        handle: asyncio.TimerHandle = timer
+        return handle
+
+    def _push_sleep(self, when_ns: int) -> asyncio.Future[None]:
+        """Schedule a bare future resolved at ``when_ns`` (the fast path of ``clock.sleep``)."""
+        if self._closed:
+            self._check_closed()
+        fut: asyncio.Future[None] = futures.Future(loop=self)
+        heapq.heappush(self._scheduled, (when_ns, self._seq(), _SLEEP, fut))
+        return fut
+
+    def _check_closed(self) -> None:
+        if self._closed:
+            raise LoopClosedError(
+                "this SimEventLoop is closed; create a new loop (evclock.run() and "
+                "asyncio.Runner(loop_factory=evclock.loop_factory()) create one per run)"
+            )
+
+    # ------------------------------------------------------------ the engine
+
+    def _run_once(self) -> None:
+        ready = self._ready
+        if not ready and not self._stopping:
+            self._idle()
+        elif len(self._io_map) > 1:
+            self._poll_io(0)
+        self._fire_due()
+        debug = self._debug
+        for _ in range(len(ready)):
+            handle = ready.popleft()
+            if handle._cancelled:
+                continue
+            if debug:
+                self._run_handle_debug(handle)
+            else:
+                handle._run()
+
+    def _run_handle_debug(self, handle: asyncio.Handle) -> None:
+        try:
+            self._current_handle = handle
+            t0 = time.monotonic()
+            handle._run()
+            dt = time.monotonic() - t0
+            if dt >= self.slow_callback_duration:
+                from asyncio.log import logger
+
+                logger.warning("Executing %s took %.3f seconds of wall time", handle, dt)
+        finally:
+            self._current_handle = None
+
+    def _fire_due(self) -> None:
+        """Move every entry due at the current time to the ready queue, in (when, seq) order."""
+        sched = self._scheduled
+        now = self._now_ns
+        ready = self._ready
+        while sched and sched[0][0] <= now:
+            _, _, kind, obj = heapq.heappop(sched)
+            if kind == _SLEEP:
+                if not obj.done():
+                    obj.set_result(None)
+                continue
+            obj._scheduled = False
+            if obj._cancelled:
+                self._timer_cancelled_count -= 1
+            elif obj._callback is _SET_RESULT_UNLESS_CANCELLED:
+                # asyncio.sleep's timer only resolves a future: do it in place so its task
+                # wakes in the same position as a clock.sleep due at the same time.
+                obj._run()
+            else:
+                ready.append(obj)
+
+    def _drop_cancelled_head(self) -> None:
+        sched = self._scheduled
+        while sched:
+            _, _, kind, obj = sched[0]
+            if kind == _SLEEP:
+                if not obj.done():
+                    return
+            elif obj._cancelled:
+                obj._scheduled = False
+                self._timer_cancelled_count -= 1
+            else:
+                return
+            heapq.heappop(sched)
+        if self._timer_cancelled_count > 64 and self._timer_cancelled_count * 2 > len(sched):
+            self._purge_cancelled()
+
+    def _purge_cancelled(self) -> None:
+        keep = []
+        for entry in self._scheduled:
+            obj = entry[3]
+            if entry[2] == _SLEEP:
+                if not obj.done():
+                    keep.append(entry)
+            elif obj._cancelled:
+                obj._scheduled = False
+            else:
+                keep.append(entry)
+        heapq.heapify(keep)
+        self._scheduled = keep
+        self._timer_cancelled_count = 0
+
+    def _idle(self) -> None:
+        """Nothing is runnable at the current time: serve I/O, wait for outside work, or advance."""
+        self._drop_cancelled_head()
+        sched = self._scheduled
+        if sched and sched[0][0] <= self._now_ns:
+            return
+        if len(self._io_map) > 1 and self._poll_io(0):
+            return
+        if self._holds or (self._watch_threads and busy_threads(self._thread_id)):
+            self._wait_for_outside_work()
+            return
+        if self._ready:
+            return  # a thread handed work over while we looked
+        self._held_since = None
+        target = sched[0][0] if sched else None
+        if target is None and not self._source.free_running:
+            self._wait_for_io_or_deadlock()
+            return
+        self._now_ns = self._source.advance(target, self._gate)
+
+    def _gate(self, next_ns: int) -> bool:
+        if self._ready:
+            return False
+        pacer = self._pacer
+        return pacer.idle or pacer.allow(next_ns)
+
+    def _poll_io(self, timeout: float | None) -> bool:
+        """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
+        event_list = self._selector.select(timeout)
+        if event_list:
+            self._process_events(event_list)
+        return bool(self._ready)
+
+    def _wait_io(self, timeout: float | None) -> bool:
+        """Pacing/pause wait: block up to ``timeout`` serving I/O; True if work is ready."""
+        if timeout is None and len(self._io_map) <= 1 and threading.active_count() <= 1:
+            raise DeadlockError(
+                "the loop is paused and nothing could ever resume it: no I/O is "
+                "registered and no other thread runs; call resume() or step() from a "
+                "task before pausing, or serve a control channel (socket) that can",
+                self._describe_waiting_tasks(),
+            )
+        return self._poll_io(timeout)
+
+    def _held_for(self) -> float:
+        now = time.monotonic()
+        if self._held_since is None:
+            self._held_since = now
+        return now - self._held_since
+
+    def _wait_for_outside_work(self) -> None:
+        held = self._held_for()
+        limit = self._stall_timeout
+        if limit is not None and held > limit:
+            threads = ", ".join(t.name for t in busy_threads(self._thread_id)) or "none"
+            raise StallError(
+                f"sim time has been held for {held:.1f} s of wall time waiting for work "
+                f"outside the loop (executor jobs or holds: {self._holds}; busy threads: "
+                f"{threads}); make that work finish, mark background threads daemon, or "
+                "raise stall_timeout (None waits forever)"
+            )
+        # Executor jobs call back through the self-pipe; bare threads need polling.
+        timeout = _THREAD_POLL if not self._holds else 0.05
+        if limit is not None:
+            timeout = min(timeout, max(limit - held, 0.0))
+        self._poll_io(timeout)
+
+    def _wait_for_io_or_deadlock(self) -> None:
+        if len(self._io_map) <= 1:
+            raise DeadlockError(
+                "deadlock: every task is waiting and nothing can wake one "
+                f"(no timer is scheduled, {self._source.describe()} cannot advance on its "
+                "own, no I/O is registered and no other thread is working). Waiting tasks:\n"
+                + "\n".join(f"  {line}" for line in self._describe_waiting_tasks()),
+                self._describe_waiting_tasks(),
+            )
+        held = self._held_for()
+        limit = self._stall_timeout
+        if limit is not None and held > limit:
+            raise StallError(
+                f"no sim-time event is scheduled and the loop waited {held:.1f} s of wall "
+                "time for I/O that never came; pass stall_timeout=None to wait for I/O "
+                "forever. Waiting tasks:\n"
+                + "\n".join(f"  {line}" for line in self._describe_waiting_tasks())
+            )
+        self._poll_io(None if limit is None else max(limit - held, 0.0) + 1e-3)
+
+    def _describe_waiting_tasks(self) -> tuple[str, ...]:
+        tasks = sorted(
+            (t for t in asyncio.all_tasks(self) if not t.done()), key=lambda t: t.get_name()
+        )
+        return tuple(_describe_task(t) for t in tasks)
+
+    # --------------------------------------------------- work outside the loop
+
+    def run_in_executor(  # type: ignore[override]
+        self, executor: concurrent.futures.Executor | None, func: Callable[..., _T], *args: Any
+    ) -> asyncio.Future[_T]:
+        fut: asyncio.Future[_T] = super().run_in_executor(executor, func, *args)
+        self._add_hold()
+        fut.add_done_callback(self._release_hold_cb)
+        return fut
+
+    async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
+        # Hold sim time: 3.12+ wraps this in a 300 s timeout that must not fire in sim time.
+        with self.hold_time():
+            await super().shutdown_default_executor(*args, **kwargs)
+
+    def _add_hold(self) -> None:
+        with self._holds_lock:
+            self._holds += 1
+
+    def _release_hold_cb(self, _fut: object) -> None:
+        with self._holds_lock:
+            self._holds -= 1
+
+    @contextlib.contextmanager
+    def hold_time(self) -> Iterator[None]:
+        """Keep sim time from moving while the block runs (thread-safe).
+
+        Use it around work that will call the loop back from outside, when evclock cannot
+        see it by itself (a C library's thread, another process)::
+
+            with loop.hold_time():
+                await wait_for_reply_from_subprocess()
+        """
+        self._add_hold()
+        try:
+            yield
+        finally:
+            self._release_hold_cb(None)
+
+    # ------------------------------------------------------------ pacing API
+
+    @property
+    def rtf(self) -> float | None:
+        """Requested real-time factor (None: as fast as possible). Settable while running."""
+        return self._pacer.rtf
+
+    @rtf.setter
+    def rtf(self, value: float | None) -> None:
+        self._pacer.rtf = value
+
+    @property
+    def paused(self) -> bool:
+        """Whether sim time is paused (tasks due at the current time still run)."""
+        return self._pacer.paused
+
+    def achieved_rtf(self) -> float | None:
+        """Real-time factor achieved over the last couple of wall seconds (None: not yet known).
+
+        Each call records a sample: poll it periodically (a progress bar, a dashboard).
+        """
+        self._pacer.meter.sample(self._now_ns)
+        return self._pacer.meter.recent()
+
+    def _require_running(self, what: str) -> None:
+        self._check_closed()
+        if not self.is_running():
+            raise NotRunningError(
+                f"{what} needs a running loop; call it from a task on the loop (or through "
+                "loop.call_soon_threadsafe), or create the loop with paused=True to start paused"
+            )
+
+    def pause(self) -> None:
+        """Stop sim time from advancing; I/O keeps being served. Call from the loop's thread."""
+        self._require_running("pause()")
+        self._pacer.pause()
+
+    def resume(self) -> None:
+        """Let sim time advance again at the requested rtf."""
+        self._require_running("resume()")
+        self._pacer.resume()
+
+    def step(self, count: int = 1) -> None:
+        """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
+        the next deadline on virtual time), then stay paused."""
+        self._require_running("step()")
+        if isinstance(count, bool) or not isinstance(count, int):
+            raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
+        if count < 1:
+            raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
+        self._pacer.step(count)
+
+    def step_until(self, when: Time) -> None:
+        """While paused, let sim time advance until it reaches ``when``, then stay paused."""
+        self._require_running("step_until()")
+        if not isinstance(when, Time):
+            raise InvalidTypeError(f"step_until() needs a Time, got {type(when).__name__}")
+        if when.clock_type is not SIM:
+            from ._errors import ClockMismatchError
+
+            raise ClockMismatchError(
+                f"step_until() needs a sim time, got a {when.clock_type.value} time"
+            )
+        if when.nanoseconds <= self._now_ns:
+            raise InvalidArgumentError(
+                f"step_until() target {when} is not after the current sim time "
+                f"{Time._from_ns(self._now_ns, SIM)}"
+            )
+        self._pacer.run_until(when.nanoseconds)
+
+    # ------------------------------------------------------------- jumps
+
+    def _jump_time(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
+        """Move sim time discontinuously (a reset or a restored snapshot).
+
+        Pre-jump handlers run, the source takes the new time, every pending ``clock.sleep``
+        is woken with :class:`ClockJumped`, other timers keep their remaining delay, then
+        post-jump handlers run.
+        """
+        from ._errors import ClockJumped
+
+        jump = TimeJump(Time._from_ns(before_ns, SIM), Time._from_ns(after_ns, SIM))
+        handlers = [h for h in list(self._jump_handlers) if h.threshold.matches(jump)]
+        for handler in handlers:
+            if handler.pre is not None:
+                handler.pre(jump)
+        assign(after_ns)
+        self._now_ns = after_ns
+        delta = after_ns - before_ns
+        kept = []
+        for when_ns, seq, kind, obj in self._scheduled:
+            if kind == _SLEEP:
+                if not obj.done():
+                    obj.set_exception(ClockJumped(jump))
+            elif not obj._cancelled:
+                shifted = max(when_ns + delta, after_ns)
+                obj._when = shifted / 1_000_000_000
+                kept.append((shifted, seq, kind, obj))
+            else:
+                obj._scheduled = False
+        heapq.heapify(kept)
+        self._scheduled = kept
+        self._timer_cancelled_count = 0
+        self._pacer.reanchor()
+        for handler in handlers:
+            if handler.post is not None:
+                handler.post(jump)
+        return jump
+
+    # ------------------------------------------------------------- closing
+
+    def close(self) -> None:
+        if self.is_closed():
+            return
+        try:
+            super().close()
+        finally:
+            self._source.close()
+
+
+def _describe_task(task: asyncio.Task[Any]) -> str:
+    coro: Any = task.get_coro()
+    where = getattr(coro, "__qualname__", repr(coro))
+    awaiting: Any = None
+    # Walk down the await chain to the innermost coroutine frame.
+    while coro is not None:
+        frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
+        if frame is not None:
+            where = f"{frame.f_code.co_qualname}() at {frame.f_code.co_filename}:{frame.f_lineno}"
+        awaiting = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
+        if awaiting is None or not (hasattr(awaiting, "cr_frame") or hasattr(awaiting, "gi_frame")):
+            break
+        coro = awaiting
+    waits_on = f", waiting on {_short(awaiting)}" if awaiting is not None else ""
+    return f"{task.get_name()}: {where}{waits_on}"
+
+
+def _short(obj: object) -> str:
+    text = repr(obj)
+    return text if len(text) <= 120 else text[:117] + "..."

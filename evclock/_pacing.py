@@ -1,0 +1,177 @@
+"""Pacing: how much wall time each advance of sim time takes; pause, resume and step."""
+
+from __future__ import annotations
+
+import collections
+import math
+import time
+from collections.abc import Callable
+
+from ._errors import InvalidArgumentError, InvalidTypeError, LagError, PacingError
+
+#: How far behind its schedule a paced run may fall before it re-anchors instead of
+#: bursting to catch up (seconds of wall time).
+DEFAULT_MAX_LAG = 0.1
+
+
+def check_rtf(rtf: object) -> float | None:
+    """Validate a real-time factor: None (as fast as possible) or a positive finite number."""
+    if rtf is None:
+        return None
+    if isinstance(rtf, bool) or not isinstance(rtf, int | float):
+        raise InvalidTypeError(
+            f"rtf must be None (as fast as possible) or a positive number, got {type(rtf).__name__}"
+        )
+    value = float(rtf)
+    if not math.isfinite(value) or value <= 0:
+        raise InvalidArgumentError(
+            f"rtf must be a positive finite real-time factor (1.0 = real time), got {rtf!r}; "
+            "use rtf=None to run as fast as possible"
+        )
+    return value
+
+
+class RtfMeter:
+    """Measures the achieved real-time factor: sim seconds per wall second."""
+
+    def __init__(self, window: float = 2.0, wall: Callable[[], float] = time.perf_counter) -> None:
+        self._wall = wall
+        self._window = window
+        self._samples: collections.deque[tuple[float, int]] = collections.deque()
+        self._first: tuple[float, int] | None = None
+
+    def sample(self, sim_ns: int) -> None:
+        """Record the pair (now, ``sim_ns``)."""
+        now = self._wall()
+        if self._first is None:
+            self._first = (now, sim_ns)
+        self._samples.append((now, sim_ns))
+        while len(self._samples) > 2 and now - self._samples[0][0] > self._window:
+            self._samples.popleft()
+
+    def recent(self) -> float | None:
+        """Achieved factor over the last window, or None before two samples."""
+        if len(self._samples) < 2:
+            return None
+        (w0, s0), (w1, s1) = self._samples[0], self._samples[-1]
+        return (s1 - s0) / 1e9 / (w1 - w0) if w1 > w0 else None
+
+    def overall(self) -> float | None:
+        """Achieved factor since the first sample."""
+        if self._first is None or not self._samples:
+            return None
+        (w0, s0), (w1, s1) = self._first, self._samples[-1]
+        return (s1 - s0) / 1e9 / (w1 - w0) if w1 > w0 else None
+
+
+class Pacer:
+    """Decides, before each increment of sim time, whether and when it may happen.
+
+    The loop gives it two callables: ``wait(timeout)`` blocks up to ``timeout`` wall seconds
+    while serving I/O and returns True if something became runnable at the current sim time
+    (then the advance is abandoned, to be retried after that work ran); ``now_ns()`` reads
+    sim time.
+    """
+
+    def __init__(
+        self,
+        wait: Callable[[float | None], bool],
+        now_ns: Callable[[], int],
+        *,
+        rtf: float | None = None,
+        strict: bool = False,
+        max_lag: float = DEFAULT_MAX_LAG,
+        wall: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if not (isinstance(max_lag, int | float) and math.isfinite(max_lag) and max_lag > 0):
+            raise InvalidArgumentError(
+                f"max_lag must be a positive number of seconds, got {max_lag!r}"
+            )
+        self._wait = wait
+        self._now_ns = now_ns
+        self._wall = wall
+        self._rtf = check_rtf(rtf)
+        self.strict = bool(strict)
+        self.max_lag = float(max_lag)
+        self._anchor: tuple[float, int] | None = None
+        self.paused = False
+        self._step_budget = 0
+        self._run_until_ns: int | None = None
+        self.meter = RtfMeter(wall=wall)
+
+    @property
+    def rtf(self) -> float | None:
+        """Requested real-time factor; None means as fast as possible."""
+        return self._rtf
+
+    @rtf.setter
+    def rtf(self, value: float | None) -> None:
+        self._rtf = check_rtf(value)
+        self._anchor = None
+
+    @property
+    def idle(self) -> bool:
+        """True when advances need no pacing at all (the hot path skips the pacer)."""
+        return self._rtf is None and not self.paused
+
+    def reanchor(self) -> None:
+        """Forget the pacing schedule (after a jump or an rtf change): pace from now on."""
+        self._anchor = None
+
+    def pause(self) -> None:
+        self.paused = True
+        self._step_budget = 0
+        self._run_until_ns = None
+
+    def resume(self) -> None:
+        self.paused = False
+        self._step_budget = 0
+        self._run_until_ns = None
+        self._anchor = None
+
+    def step(self, count: int) -> None:
+        if not self.paused:
+            raise PacingError(self._not_paused("step()"))
+        self._step_budget += count
+
+    def run_until(self, sim_ns: int) -> None:
+        if not self.paused:
+            raise PacingError(self._not_paused("step_until()"))
+        self._run_until_ns = sim_ns
+
+    def _not_paused(self, what: str) -> str:
+        mode = "as fast as possible" if self._rtf is None else f"at rtf={self._rtf:g}"
+        return (
+            f"{what} needs a paused loop, but it is running {mode}; call pause() first, then step"
+        )
+
+    def allow(self, next_ns: int) -> bool:
+        """May sim time move to ``next_ns`` now? Waits (serving I/O) as pacing requires."""
+        while self.paused:
+            if self._step_budget > 0:
+                self._step_budget -= 1
+                break
+            if self._run_until_ns is not None and self._now_ns() < self._run_until_ns:
+                break
+            if self._wait(None):
+                return False
+        if self._rtf is not None:
+            wall = self._wall()
+            if self._anchor is None:
+                self._anchor = (wall, self._now_ns())
+            wall0, sim0 = self._anchor
+            due = wall0 + (next_ns - sim0) / 1e9 / self._rtf
+            lag = wall - due
+            if lag > self.max_lag:
+                if self.strict:
+                    raise LagError(
+                        f"the simulation lags {lag:.3f} s of wall time behind rtf={self._rtf:g} "
+                        f"(strict limit {self.max_lag:g} s); lower the rtf, lighten the "
+                        "controllers or pass strict=False to let it run as fast as it can"
+                    )
+                # Re-anchor: never burst to catch up on lost time.
+                self._anchor = (wall, self._now_ns())
+            while (delay := due - self._wall()) > 0:
+                if self._wait(delay):
+                    return False
+        return True

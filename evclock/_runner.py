@@ -1,0 +1,212 @@
+"""Launching: ``evclock.run()``, loop factories, and the once-per-launch ``use_sim_time``."""
+
+from __future__ import annotations
+
+import asyncio
+import functools
+import os
+from collections.abc import Callable, Coroutine
+from typing import Any, TypeVar
+
+from ._clock import _wall_clock_type
+from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
+from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
+from ._pacing import DEFAULT_MAX_LAG
+from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds
+from .sources import TimeSource, VirtualTimeSource
+
+_T = TypeVar("_T")
+
+ENV_USE_SIM_TIME = "EVCLOCK_USE_SIM_TIME"
+_TRUE = ("1", "true", "yes", "on")
+_FALSE = ("0", "false", "no", "off")
+
+
+def env_use_sim_time() -> bool | None:
+    """The ``EVCLOCK_USE_SIM_TIME`` setting: True, False, or None when unset."""
+    raw = os.environ.get(ENV_USE_SIM_TIME)
+    if raw is None or not raw.strip():
+        return None
+    value = raw.strip().lower()
+    if value in _TRUE:
+        return True
+    if value in _FALSE:
+        return False
+    raise InvalidArgumentError(
+        f"{ENV_USE_SIM_TIME} must be one of {'/'.join(_TRUE)} or {'/'.join(_FALSE)}, got {raw!r}"
+    )
+
+
+def resolve_use_sim_time(use_sim_time: bool | None = None, *, default: bool = True) -> bool:
+    """Decide sim or wall time once, at launch: the argument, else the environment, else
+    ``default``."""
+    if use_sim_time is not None:
+        if not isinstance(use_sim_time, bool):
+            raise InvalidTypeError(
+                f"use_sim_time must be True, False or None, got {type(use_sim_time).__name__}"
+            )
+        return use_sim_time
+    from_env = env_use_sim_time()
+    return default if from_env is None else from_env
+
+
+def _start_ns(start: float | Time | Duration) -> int:
+    if isinstance(start, Time):
+        if start.clock_type is not SIM:
+            raise InvalidArgumentError(
+                f"start must be a sim time, got a {start.clock_type.value} time"
+            )
+        return start.nanoseconds
+    ns = to_nanoseconds(start, "start")
+    if ns < 0:
+        raise InvalidArgumentError(f"start must not be negative, got {start!r}")
+    return ns
+
+
+def loop_factory(
+    *,
+    source: Callable[[], TimeSource] | None = None,
+    start: float | Time = 0,
+    rtf: float | None = None,
+    strict: bool = False,
+    max_lag: float = DEFAULT_MAX_LAG,
+    stall_timeout: float | None = DEFAULT_STALL_TIMEOUT,
+    paused: bool = False,
+    watch_threads: bool = True,
+) -> Callable[[], SimEventLoop]:
+    """A zero-argument factory of fresh :class:`SimEventLoop` objects, for
+    ``asyncio.Runner(loop_factory=...)``, pytest-asyncio or anyio.
+
+    ``source`` is a factory too (each loop needs its own time source); by default each loop
+    gets a :class:`VirtualTimeSource` starting at ``start`` seconds.
+    """
+    if source is not None and not callable(source):
+        raise InvalidTypeError(
+            "loop_factory(source=...) takes a callable that returns a new TimeSource "
+            f"(e.g. lambda: PyBulletTimeSource(client)), got {type(source).__name__}"
+        )
+    start_ns = _start_ns(start)
+    if source is not None and start_ns:
+        raise InvalidArgumentError(
+            "start= applies to virtual time only; a custom source sets its own time"
+        )
+    make_source = source or functools.partial(VirtualTimeSource, start_ns)
+    # Validate the options once, now, rather than at the first loop creation.
+    SimEventLoop(
+        VirtualTimeSource(), rtf=rtf, strict=strict, max_lag=max_lag, stall_timeout=stall_timeout
+    ).close()
+
+    def new_loop() -> SimEventLoop:
+        return SimEventLoop(
+            make_source(),
+            rtf=rtf,
+            strict=strict,
+            max_lag=max_lag,
+            stall_timeout=stall_timeout,
+            paused=paused,
+            watch_threads=watch_threads,
+        )
+
+    return new_loop
+
+
+async def _limited(main: Coroutine[Any, Any, _T], until_ns: int) -> _T:
+    loop = asyncio.get_running_loop()
+    task = asyncio.current_task()
+    assert task is not None
+    assert isinstance(loop, SimEventLoop)
+    expired = False
+
+    def expire() -> None:
+        nonlocal expired
+        expired = True
+        task.cancel("evclock: the until limit was reached")
+
+    handle = loop._call_at_ns(until_ns, until_ns / 1e9, expire, (), None)
+    try:
+        return await main
+    except asyncio.CancelledError:
+        if expired:
+            raise SimTimeLimitError(
+                f"the program was still running at the until limit ({until_ns / 1e9:g} s of "
+                "sim time) and was cancelled; raise until= or let the program finish sooner"
+            ) from None
+        raise
+    finally:
+        handle.cancel()
+
+
+def run(
+    main: Coroutine[Any, Any, _T],
+    *,
+    use_sim_time: bool | None = None,
+    source: TimeSource | None = None,
+    start: float | Time = 0,
+    until: float | Time | None = None,
+    rtf: float | None = None,
+    strict: bool = False,
+    max_lag: float = DEFAULT_MAX_LAG,
+    stall_timeout: float | None = DEFAULT_STALL_TIMEOUT,
+    paused: bool = False,
+    wall_clock: ClockType = STEADY,
+    debug: bool | None = None,
+) -> _T:
+    """Run ``main`` to completion, like :func:`asyncio.run`, on sim or wall time.
+
+    ``use_sim_time`` is decided here, once: the argument, else ``EVCLOCK_USE_SIM_TIME``,
+    else True. On sim time ``main`` runs on a :class:`SimEventLoop` driven by ``source``
+    (default: virtual time from ``start``); ``until`` (sim seconds or a Time) cancels a
+    program still running then and raises :class:`SimTimeLimitError`. On wall time it runs
+    on a standard asyncio loop and :func:`evclock.clock` returns the ``wall_clock`` clock.
+    """
+    if not asyncio.iscoroutine(main):
+        raise InvalidTypeError(
+            f"run() needs a coroutine object such as main(), got {type(main).__name__}"
+            + ("; call the function: run(main())" if callable(main) else "")
+        )
+    try:
+        sim = resolve_use_sim_time(use_sim_time)
+        if wall_clock not in (STEADY, SYSTEM):
+            raise InvalidArgumentError(f"wall_clock must be STEADY or SYSTEM, got {wall_clock!r}")
+        if not sim:
+            if source is not None:
+                raise InvalidArgumentError(
+                    "a time source was given but use_sim_time resolved to False (argument or "
+                    f"{ENV_USE_SIM_TIME}); drop the source or enable sim time"
+                )
+            _wall_clock_type[0] = wall_clock
+            with asyncio.Runner(debug=debug) as runner:
+                return runner.run(main)
+        if source is not None and not isinstance(source, TimeSource):
+            raise InvalidTypeError(f"source must be a TimeSource, got {type(source).__name__}")
+        start_ns = _start_ns(start)
+        if source is None:
+            source = VirtualTimeSource(start_ns)
+        elif start_ns:
+            raise InvalidArgumentError(
+                "start= applies to virtual time only; the source sets its own time"
+            )
+        loop = SimEventLoop(
+            source,
+            rtf=rtf,
+            strict=strict,
+            max_lag=max_lag,
+            stall_timeout=stall_timeout,
+            paused=paused,
+        )
+    except BaseException:
+        main.close()
+        raise
+    coro: Coroutine[Any, Any, _T] = main
+    if until is not None:
+        until_ns = _start_ns(until)
+        if until_ns <= loop.now_ns:
+            main.close()
+            loop.close()
+            raise InvalidArgumentError(
+                f"until={until!r} is not after the start of sim time "
+                f"({loop.now_ns / 1e9:g} s); give a later sim time"
+            )
+        coro = _limited(main, until_ns)
+    with asyncio.Runner(debug=debug, loop_factory=lambda: loop) as runner:
+        return runner.run(coro)

@@ -1,0 +1,62 @@
+"""The interface between the simulation loop and whatever owns simulation time."""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from .._loop import SimEventLoop
+
+#: ``gate(next_ns)`` is asked before each increment of time; False means "not now": the loop
+#: has something to run at the current time (I/O arrived, a thread called back, the loop was
+#: paused), so the source must stop advancing and return.
+Gate = Callable[[int], bool]
+
+
+class TimeSource(abc.ABC):
+    """Owns simulation time for one :class:`~evclock.SimEventLoop`.
+
+    The loop asks the source to advance only when every task waits. A source either jumps
+    (discrete-event: :class:`VirtualTimeSource`) or moves in whole steps of a physics engine
+    (:class:`~evclock.PyBulletTimeSource`).
+    """
+
+    #: True when time can move with nothing scheduled (physics keeps stepping); False when an
+    #: idle program with nothing scheduled is a deadlock.
+    free_running: bool = False
+
+    _loop: SimEventLoop | None = None
+
+    def attach(self, loop: SimEventLoop) -> None:
+        """Called once by the loop that this source will drive."""
+        if self._loop is not None and self._loop is not loop:
+            from .._errors import EvClockError
+
+            raise EvClockError(
+                f"{type(self).__name__} is already attached to another loop; "
+                "create one time source per loop"
+            )
+        self._loop = loop
+
+    @property
+    @abc.abstractmethod
+    def now_ns(self) -> int:
+        """Current simulation time in integer nanoseconds."""
+
+    @abc.abstractmethod
+    def advance(self, target_ns: int | None, gate: Gate) -> int:
+        """Move time toward ``target_ns`` (None: free-run one increment) and return the new time.
+
+        Before every increment to a time ``t`` call ``gate(t)``; if it returns False, stop
+        without moving. The returned time may be before ``target_ns`` (the gate said no, or a
+        step hook woke a task) or after it (steps quantise time up to a step boundary).
+        """
+
+    def describe(self) -> str:
+        """A short human description, for error messages."""
+        return type(self).__name__
+
+    def close(self) -> None:  # noqa: B027 - optional hook, most sources hold nothing
+        """Release resources; called when the loop closes."""

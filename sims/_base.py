@@ -1,0 +1,177 @@
+"""Shared scaffolding for the PyBullet scenarios: the clock interface and the Scenario base class.
+
+A scenario loads its world into an already-connected PyBullet client and runs its controllers as
+asyncio coroutines against a :class:`ClockLike`.  Controllers never step the physics: whoever owns
+the clock calls ``stepSimulation`` once per 1/240 s of simulated time, and controllers only read
+state and write motor commands between steps.
+"""
+
+from __future__ import annotations
+
+import abc
+import asyncio
+import math
+from collections.abc import AsyncIterator, Awaitable, Coroutine
+from pathlib import Path
+from typing import Any, ClassVar, Protocol
+
+import numpy as np
+import pybullet as p
+import pybullet_data
+
+PHYSICS_HZ = 240
+"""Physics rate of every scenario: one ``stepSimulation`` per 1/240 s of simulated time."""
+
+GRAVITY = -9.81
+
+Metric = float | int | bool | str
+
+
+class TimeLike(Protocol):
+    """A point in simulated time."""
+
+    @property
+    def seconds(self) -> float:
+        """The time in seconds."""
+        ...
+
+    @property
+    def nanoseconds(self) -> int:
+        """The time in integer nanoseconds (exact)."""
+        ...
+
+
+class TickLike(Protocol):
+    """One iteration of a drift-free rate loop."""
+
+    @property
+    def expected(self) -> TimeLike:
+        """When this tick was due."""
+        ...
+
+    @property
+    def actual(self) -> TimeLike:
+        """When this tick actually ran."""
+        ...
+
+    @property
+    def missed(self) -> int:
+        """How many ticks were skipped because the loop ran late."""
+        ...
+
+    @property
+    def index(self) -> int:
+        """The tick number, counting from 0 at the first tick (skipped ticks count too)."""
+        ...
+
+
+class ClockLike(Protocol):
+    """The clock interface scenario controllers use (satisfied by ``evclock.clock()``)."""
+
+    def now(self) -> TimeLike:
+        """The current simulated time."""
+        ...
+
+    def sleep(self, seconds: float) -> Awaitable[None]:
+        """Suspend the caller for ``seconds`` of simulated time."""
+        ...
+
+    def rate(self, hz: float, *, name: str) -> AsyncIterator[TickLike]:
+        """Yield a tick every ``1/hz`` simulated seconds, forever, without drift."""
+        ...
+
+
+def data_path(relative: str) -> str:
+    """The absolute path of a file shipped in ``pybullet_data``."""
+    return str(Path(pybullet_data.getDataPath()) / relative)
+
+
+def wrap_angle(angle: float) -> float:
+    """``angle`` wrapped into [-pi, pi)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+class Scenario(abc.ABC):
+    """A PyBullet world plus an asyncio controller stack that drives it toward a mission.
+
+    Subclasses call ``super().__init__`` first (which prepares the client and the seeded random
+    generator ``self.rng``), then load their bodies.  :meth:`run` starts the subclass's
+    :meth:`_services` (background rate loops) and its :meth:`_mission` concurrently in one
+    ``asyncio.TaskGroup``; when the mission returns, the services are cancelled and ``run``
+    returns.  The mission decides success; :meth:`success` and :meth:`summary` report it.
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    default_until: ClassVar[float]
+    """Simulated seconds the scenario needs to finish its mission (with margin)."""
+
+    def __init__(self, client: int, seed: int = 0) -> None:
+        """Prepare the already-connected PyBullet ``client``: gravity, 1/240 s steps, the RNG."""
+        self.client = client
+        self.seed = seed
+        self.rng = np.random.default_rng(seed)
+        self.finished_at: float | None = None
+        """Simulated seconds at which the mission ended, or None while it has not."""
+        p.setGravity(0.0, 0.0, GRAVITY, physicsClientId=client)
+        p.setTimeStep(1.0 / PHYSICS_HZ, physicsClientId=client)
+
+    def load_urdf(self, relative: str, **kwargs: Any) -> int:
+        """Load a ``pybullet_data`` URDF into this scenario's client and return its body id."""
+        body: int = p.loadURDF(data_path(relative), physicsClientId=self.client, **kwargs)
+        return body
+
+    async def run(self, clock: ClockLike) -> None:
+        """Run the controller stack until the mission is over (success or failure)."""
+        async with asyncio.TaskGroup() as group:
+            services = [
+                group.create_task(coro, name=f"{self.name}.{label}")
+                for label, coro in self._services(clock).items()
+            ]
+            await group.create_task(self._mission(clock), name=f"{self.name}.mission")
+            self.finished_at = clock.now().seconds
+            for task in services:
+                task.cancel()
+
+    @abc.abstractmethod
+    def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
+        """Background controllers (label -> coroutine) that run until the mission ends."""
+
+    @abc.abstractmethod
+    async def _mission(self, clock: ClockLike) -> None:
+        """The controller that decides when the scenario is over; returns when it is."""
+
+    @abc.abstractmethod
+    def success(self) -> bool:
+        """Whether the mission was accomplished."""
+
+    @abc.abstractmethod
+    def _metrics(self) -> dict[str, Metric]:
+        """Scenario-specific metrics for :meth:`summary`."""
+
+    def summary(self) -> dict[str, Metric]:
+        """Metrics for a report; ``mission_time_s`` is NaN while the mission has not ended."""
+        return {
+            "scenario": self.name,
+            "seed": self.seed,
+            "success": self.success(),
+            "mission_time_s": math.nan if self.finished_at is None else self.finished_at,
+            **self._metrics(),
+        }
+
+    def state_vector(self) -> list[float]:
+        """The full physical state of every body, for bit-exact determinism comparisons.
+
+        Per body (in body-id order): base position, orientation quaternion, linear and angular
+        velocity, then every joint's position and velocity.
+        """
+        state: list[float] = []
+        cid = self.client
+        for i in range(p.getNumBodies(physicsClientId=cid)):
+            body = p.getBodyUniqueId(i, physicsClientId=cid)
+            position, orientation = p.getBasePositionAndOrientation(body, physicsClientId=cid)
+            linear, angular = p.getBaseVelocity(body, physicsClientId=cid)
+            state += [*position, *orientation, *linear, *angular]
+            for joint in range(p.getNumJoints(body, physicsClientId=cid)):
+                state += p.getJointState(body, joint, physicsClientId=cid)[:2]
+        return state
