@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import abc
 import asyncio
+import asyncio.futures
 import time
 import weakref
+from heapq import heappush
 from collections.abc import Awaitable
 from typing import TYPE_CHECKING
 
@@ -23,6 +25,7 @@ from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanosecond
 if TYPE_CHECKING:
     from ._loop import SimEventLoop
 
+_Future = asyncio.futures.Future
 _NEGATIVE_HINT = "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
 
 
@@ -166,8 +169,21 @@ class SimClock(Clock):
         return Time._from_ns(self._loop._now_ns, SIM)
 
     def sleep(self, duration: float | Duration) -> asyncio.Future[None]:
+        # The hot path of every controller: keep it flat.
+        if type(duration) is float and 0.0 <= duration < 1e9:
+            ns = round(duration * 1e9)
+        elif type(duration) is Duration:
+            ns = duration._ns
+            if ns < 0:
+                ns = _sleep_ns(duration)
+        else:
+            ns = _sleep_ns(duration)
         loop = self._loop
-        return loop._push_sleep(loop._now_ns + _sleep_ns(duration))
+        if loop._closed:
+            loop._check_closed()
+        fut: asyncio.Future[None] = _Future(loop=loop)
+        heappush(loop._scheduled, (loop._now_ns + ns, loop._seq(), 0, fut))
+        return fut
 
     def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
         loop = self._loop

@@ -57,6 +57,9 @@ _Ts = TypeVarTuple("_Ts")
 
 _SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
 _SLEEP, _HANDLE = 0, 1
+# Read on every advance: threading.active_count() would take a lock each time.
+_thread_registry: dict[int, threading.Thread] = threading._active  # type: ignore[attr-defined]
+_thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # type: ignore[attr-defined]
 
 #: Default wall-time limit for sim time being held by outside work or an I/O wait.
 DEFAULT_STALL_TIMEOUT = 60.0
@@ -140,7 +143,10 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         source.attach(self)
         self._now_ns: int = source.now_ns
         self._seq = itertools.count().__next__
-        self._io_map = self._selector.get_map()  # live view; the self-pipe is always in it
+        # Registered file descriptors, read on every iteration: the selector's own dict when
+        # it exposes one (all stdlib selectors do), else its public mapping view. The
+        # self-pipe is always registered, so "real I/O" means more than one entry.
+        self._io_map: Any = getattr(self._selector, "_fd_to_key", None) or self._selector.get_map()
         self._pacer = Pacer(
             self._wait_io, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag
         )
@@ -246,26 +252,44 @@ class SimEventLoop(asyncio.SelectorEventLoop):
 
     def _run_once(self) -> None:
         ready = self._ready
-        if not ready and not self._stopping:
-            self._idle()
-        elif len(self._io_map) > 1:
-            self._poll_io(0)
-        self._fire_due()
-        debug = self._debug
-        for _ in range(len(ready)):
-            handle = ready.popleft()
-            if handle._cancelled:
-                continue
-            if debug:
-                self._run_handle_debug(handle)
-            else:
-                handle._run()
+        io_map = self._io_map
+        heappop = heapq.heappop
+        while True:
+            if not ready and not self._stopping:
+                self._idle()
+            elif len(io_map) > 1:
+                self._poll_io(0)
+            # Entries due now are taken before anything runs, so whatever the callbacks
+            # below schedule for the same instant waits for the next iteration, as in asyncio.
+            sched = self._scheduled
+            now = self._now_ns
+            batch = None
+            if sched and sched[0][0] <= now:
+                batch = [heappop(sched)]
+                while sched and sched[0][0] <= now:
+                    batch.append(heappop(sched))
+            if ready:
+                debug = self._debug
+                for _ in range(len(ready)):
+                    handle = ready.popleft()
+                    if handle._cancelled:  # type: ignore[attr-defined]
+                        continue
+                    if debug:
+                        self._run_handle_debug(handle)
+                    else:
+                        handle._run()  # type: ignore[attr-defined]
+            if batch is not None:
+                self._fire(batch)
+            # Keep going without returning to run_forever() only in the plain case of
+            # tasks sleeping in turn (the common case in simulation, and the hot path).
+            if ready or self._stopping or not sched or len(io_map) > 1:
+                return
 
     def _run_handle_debug(self, handle: asyncio.Handle) -> None:
         try:
             self._current_handle = handle
             t0 = time.monotonic()
-            handle._run()
+            handle._run()  # type: ignore[attr-defined]
             dt = time.monotonic() - t0
             if dt >= self.slow_callback_duration:
                 from asyncio.log import logger
@@ -274,26 +298,50 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         finally:
             self._current_handle = None
 
-    def _fire_due(self) -> None:
-        """Move every entry due at the current time to the ready queue, in (when, seq) order."""
-        sched = self._scheduled
-        now = self._now_ns
-        ready = self._ready
-        while sched and sched[0][0] <= now:
-            _, _, kind, obj = heapq.heappop(sched)
+    def _fire(self, batch: list[tuple[int, int, int, Any]]) -> None:
+        """Fire due entries in (when, seq) order.
+
+        A sleeping task is resumed in place: its future is resolved and its wake-up callback
+        run right here, instead of through a ``call_soon`` hop. The order is exactly the one
+        asyncio would produce (every due entry after the callbacks that were already ready,
+        each in scheduling order); it just skips allocating and queueing a Handle per wakeup.
+        """
+        debug = self._debug
+        for _, _, kind, obj in batch:
             if kind == _SLEEP:
-                if not obj.done():
-                    obj.set_result(None)
-                continue
-            obj._scheduled = False
-            if obj._cancelled:
-                self._timer_cancelled_count -= 1
-            elif obj._callback is _SET_RESULT_UNLESS_CANCELLED:
-                # asyncio.sleep's timer only resolves a future: do it in place so its task
-                # wakes in the same position as a clock.sleep due at the same time.
-                obj._run()
+                if obj.done():
+                    continue
+                fut, result = obj, None
             else:
-                ready.append(obj)
+                obj._scheduled = False
+                if obj._cancelled:
+                    self._timer_cancelled_count -= 1
+                    continue
+                if obj._callback is not _SET_RESULT_UNLESS_CANCELLED:
+                    if debug:
+                        self._run_handle_debug(obj)
+                    else:
+                        obj._run()
+                    continue
+                fut, result = obj._args  # asyncio.sleep(): resolve its future the same way
+                if fut.done():
+                    continue
+            callbacks = fut._callbacks
+            if not callbacks:
+                fut.set_result(result)
+                continue
+            for callback, _ctx in callbacks:
+                fut.remove_done_callback(callback)
+            fut.set_result(result)
+            for callback, ctx in callbacks:
+                try:
+                    ctx.run(callback, fut)
+                except (SystemExit, KeyboardInterrupt):
+                    raise
+                except BaseException as exc:
+                    self.call_exception_handler(
+                        {"message": "Exception in callback of a sim-time sleep", "exception": exc}
+                    )
 
     def _drop_cancelled_head(self) -> None:
         sched = self._scheduled
@@ -301,12 +349,12 @@ class SimEventLoop(asyncio.SelectorEventLoop):
             _, _, kind, obj = sched[0]
             if kind == _SLEEP:
                 if not obj.done():
-                    return
+                    break
             elif obj._cancelled:
                 obj._scheduled = False
                 self._timer_cancelled_count -= 1
             else:
-                return
+                break
             heapq.heappop(sched)
         if self._timer_cancelled_count > 64 and self._timer_cancelled_count * 2 > len(sched):
             self._purge_cancelled()
@@ -328,13 +376,22 @@ class SimEventLoop(asyncio.SelectorEventLoop):
 
     def _idle(self) -> None:
         """Nothing is runnable at the current time: serve I/O, wait for outside work, or advance."""
-        self._drop_cancelled_head()
         sched = self._scheduled
-        if sched and sched[0][0] <= self._now_ns:
-            return
+        if sched:
+            _, _, kind, obj = sched[0]
+            if obj.done() if kind == _SLEEP else obj._cancelled:
+                self._drop_cancelled_head()
+            elif self._timer_cancelled_count > 64:
+                self._drop_cancelled_head()
+            if sched and sched[0][0] <= self._now_ns:
+                return
         if len(self._io_map) > 1 and self._poll_io(0):
             return
-        if self._holds or (self._watch_threads and busy_threads(self._thread_id)):
+        if self._holds or (
+            self._watch_threads
+            and len(_thread_registry) + len(_thread_limbo) > 1
+            and busy_threads(self._thread_id)
+        ):
             self._wait_for_outside_work()
             return
         if self._ready:
@@ -344,13 +401,8 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         if target is None and not self._source.free_running:
             self._wait_for_io_or_deadlock()
             return
-        self._now_ns = self._source.advance(target, self._gate)
-
-    def _gate(self, next_ns: int) -> bool:
-        if self._ready:
-            return False
         pacer = self._pacer
-        return pacer.idle or pacer.allow(next_ns)
+        self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
 
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""

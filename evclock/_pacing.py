@@ -98,6 +98,8 @@ class Pacer:
         self._step_budget = 0
         self._run_until_ns: int | None = None
         self.meter = RtfMeter(wall=wall)
+        self.idle = True
+        self._update_idle()
 
     @property
     def rtf(self) -> float | None:
@@ -108,11 +110,11 @@ class Pacer:
     def rtf(self, value: float | None) -> None:
         self._rtf = check_rtf(value)
         self._anchor = None
+        self._update_idle()
 
-    @property
-    def idle(self) -> bool:
-        """True when advances need no pacing at all (the hot path skips the pacer)."""
-        return self._rtf is None and not self.paused
+    def _update_idle(self) -> None:
+        #: True when advances need no pacing at all (the hot path skips the pacer).
+        self.idle = self._rtf is None and not self.paused
 
     def reanchor(self) -> None:
         """Forget the pacing schedule (after a jump or an rtf change): pace from now on."""
@@ -122,12 +124,14 @@ class Pacer:
         self.paused = True
         self._step_budget = 0
         self._run_until_ns = None
+        self._update_idle()
 
     def resume(self) -> None:
         self.paused = False
         self._step_budget = 0
         self._run_until_ns = None
         self._anchor = None
+        self._update_idle()
 
     def step(self, count: int) -> None:
         if not self.paused:

@@ -16,9 +16,7 @@ from .cartpole import CartPole
 from .husky import HuskyPatrol
 from .kuka import KukaReach
 
-SCENARIOS: dict[str, type[Scenario]] = {
-    cls.name: cls for cls in (KukaReach, HuskyPatrol, CartPole)
-}
+SCENARIOS: dict[str, type[Scenario]] = {cls.name: cls for cls in (KukaReach, HuskyPatrol, CartPole)}
 """Every scenario class by its ``name``."""
 
 

@@ -49,7 +49,7 @@ def _expm(matrix: np.ndarray) -> np.ndarray:
 def discrete_lqr(
     a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, dt: float
 ) -> np.ndarray:
-    """Gain ``K`` of the discrete LQR for ``x' = a x + b u`` sampled with a zero-order hold."""
+    """Gain ``K`` (``u = -K x``) of the discrete LQR for ``dx/dt = a x + b u`` held over ``dt``."""
     n, m = b.shape
     augmented = np.zeros((n + m, n + m))
     augmented[:n, :n] = a
@@ -119,18 +119,20 @@ class CartPole(Scenario):
         cid = self.client
         upright = [0.0, 0.0]
         mass = np.array(p.calculateMassMatrix(self.robot, upright, physicsClientId=cid))
+
+        def gravity(joint: int, offset: float) -> np.ndarray:
+            """Generalized gravity forces with ``joint`` displaced: inverse dynamics at rest."""
+            q = list(upright)
+            q[joint] += offset
+            forces = p.calculateInverseDynamics(
+                self.robot, q, upright, upright, physicsClientId=cid
+            )
+            return np.array(forces)
+
         eps = 1e-6
         stiffness = np.zeros((2, 2))
         for joint in (SLIDER, POLE):
-            plus, minus = list(upright), list(upright)
-            plus[joint] += eps
-            minus[joint] -= eps
-            # Inverse dynamics at rest gives the generalized gravity forces G(q).
-            g_plus = p.calculateInverseDynamics(self.robot, plus, upright, upright, physicsClientId=cid)
-            g_minus = p.calculateInverseDynamics(
-                self.robot, minus, upright, upright, physicsClientId=cid
-            )
-            stiffness[:, joint] = (np.array(g_plus) - np.array(g_minus)) / (2.0 * eps)
+            stiffness[:, joint] = (gravity(joint, eps) - gravity(joint, -eps)) / (2.0 * eps)
         a = np.zeros((4, 4))
         a[:2, 2:] = np.eye(2)
         a[2:, :2] = -np.linalg.solve(mass, stiffness)

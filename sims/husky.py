@@ -41,7 +41,7 @@ class HuskyPatrol(Scenario):
 
     name = "husky"
     description = "Husky following waypoints at 50 Hz, 20 Hz lidar stopping it before an obstacle"
-    default_until = 25.0
+    default_until = 20.0
 
     drive_hz = 50.0
     lidar_hz = 20.0
@@ -95,7 +95,9 @@ class HuskyPatrol(Scenario):
             baseMass=0.0,
             baseCollisionShapeIndex=shape,
             basePosition=[*self.obstacle_xy, OBSTACLE_HALF_EXTENTS[2]],
-            baseOrientation=p.getQuaternionFromEuler([0.0, 0.0, math.atan2(heading[1], heading[0])]),
+            baseOrientation=p.getQuaternionFromEuler(
+                [0.0, 0.0, math.atan2(heading[1], heading[0])]
+            ),
             physicsClientId=client,
         )
         self.min_range = self.lidar_max_range

@@ -39,11 +39,11 @@ CANDIDATE_TARGETS = (
 
 
 class KukaReach(Scenario):
-    """KUKA iiwa (fixed base) visiting 3-4 seeded Cartesian targets with the flange pointing down."""
+    """KUKA iiwa (fixed base) visiting 3-4 seeded Cartesian targets, flange pointing down."""
 
     name = "kuka"
     description = "KUKA iiwa reaching seeded Cartesian targets: 10 Hz IK planner, joint control"
-    default_until = 15.0
+    default_until = 10.0
 
     planner_hz = 10.0
     tolerance = 0.025
@@ -73,7 +73,9 @@ class KukaReach(Scenario):
         count = int(self.rng.integers(3, 5))
         chosen = self.rng.choice(len(CANDIDATE_TARGETS), size=count, replace=False)
         jitter = self.rng.uniform(-self.target_jitter, self.target_jitter, size=(count, 3))
-        self.targets = [np.array(CANDIDATE_TARGETS[i]) + d for i, d in zip(chosen, jitter, strict=True)]
+        self.targets = [
+            np.array(CANDIDATE_TARGETS[i]) + d for i, d in zip(chosen, jitter, strict=True)
+        ]
         self.orientation = p.getQuaternionFromEuler([np.pi, 0.0, 0.0])
         self.reached_at: list[float] = []
         self.goal = np.array(REST_POSE)
@@ -83,7 +85,10 @@ class KukaReach(Scenario):
     def flange_position(self) -> np.ndarray:
         """World position of the flange link frame."""
         link = p.getLinkState(
-            self.robot, END_EFFECTOR_LINK, computeForwardKinematics=True, physicsClientId=self.client
+            self.robot,
+            END_EFFECTOR_LINK,
+            computeForwardKinematics=True,
+            physicsClientId=self.client,
         )
         return np.array(link[4])
 

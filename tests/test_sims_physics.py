@@ -60,7 +60,7 @@ class Tick:
 class StepClock:
     """Minimal discrete-event clock over plain asyncio whose time is PyBullet's step count."""
 
-    _MIN_YIELDS = 3
+    _MIN_YIELDS = 4
     """Event-loop passes per settle, enough for new tasks to start and finished ones to unwind."""
 
     def __init__(self, client: int) -> None:
@@ -110,10 +110,10 @@ class StepClock:
                 self._waking -= 1
 
     async def _settle(self) -> None:
-        """Yield to the event loop until every woken sleeper has run up to its next wait."""
-        for _ in range(self._MIN_YIELDS):
-            await asyncio.sleep(0)
+        """Yield until every woken sleeper has run up to its next wait, then a few passes more."""
         while self._waking:
+            await asyncio.sleep(0)
+        for _ in range(self._MIN_YIELDS):
             await asyncio.sleep(0)
 
     def _step(self) -> None:

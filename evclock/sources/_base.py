@@ -9,10 +9,10 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from .._loop import SimEventLoop
 
-#: ``gate(next_ns)`` is asked before each increment of time; False means "not now": the loop
-#: has something to run at the current time (I/O arrived, a thread called back, the loop was
-#: paused), so the source must stop advancing and return.
-Gate = Callable[[int], bool]
+#: ``gate(next_ns)`` is asked before each increment of time when pacing is active (None
+#: otherwise: advance freely); False means "not now": the loop has something to run at the
+#: current time (I/O arrived, a thread called back), so the source must stop and return.
+Gate = Callable[[int], bool] | None
 
 
 class TimeSource(abc.ABC):
@@ -49,8 +49,9 @@ class TimeSource(abc.ABC):
     def advance(self, target_ns: int | None, gate: Gate) -> int:
         """Move time toward ``target_ns`` (None: free-run one increment) and return the new time.
 
-        Before every increment to a time ``t`` call ``gate(t)``; if it returns False, stop
-        without moving. The returned time may be before ``target_ns`` (the gate said no, or a
+        Before every increment to a time ``t`` call ``gate(t)`` (unless ``gate`` is None); if
+        it returns False, stop without moving. Stop as well once a task became ready (a
+        step hook woke one). The returned time may be before ``target_ns`` (the gate said no, or a
         step hook woke a task) or after it (steps quantise time up to a step boundary).
         """
 

@@ -29,7 +29,7 @@ class VirtualTimeSource(TimeSource):
         return self._now
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
-        if target_ns is not None and target_ns > self._now and gate(target_ns):
+        if target_ns is not None and target_ns > self._now and (gate is None or gate(target_ns)):
             self._now = target_ns
         return self._now
 
