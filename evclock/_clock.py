@@ -7,8 +7,8 @@ import asyncio
 import asyncio.futures
 import time
 import weakref
-from heapq import heappush
 from collections.abc import Awaitable
+from heapq import heappush
 from typing import TYPE_CHECKING
 
 from ._errors import (

@@ -272,12 +272,12 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 debug = self._debug
                 for _ in range(len(ready)):
                     handle = ready.popleft()
-                    if handle._cancelled:  # type: ignore[attr-defined]
+                    if handle._cancelled:
                         continue
                     if debug:
                         self._run_handle_debug(handle)
                     else:
-                        handle._run()  # type: ignore[attr-defined]
+                        handle._run()
             if batch is not None:
                 self._fire(batch)
             # Keep going without returning to run_forever() only in the plain case of
@@ -289,7 +289,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         try:
             self._current_handle = handle
             t0 = time.monotonic()
-            handle._run()  # type: ignore[attr-defined]
+            handle._run()
             dt = time.monotonic() - t0
             if dt >= self.slow_callback_duration:
                 from asyncio.log import logger
@@ -379,9 +379,9 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         sched = self._scheduled
         if sched:
             _, _, kind, obj = sched[0]
-            if obj.done() if kind == _SLEEP else obj._cancelled:
-                self._drop_cancelled_head()
-            elif self._timer_cancelled_count > 64:
+            if (
+                obj.done() if kind == _SLEEP else obj._cancelled
+            ) or self._timer_cancelled_count > 64:
                 self._drop_cancelled_head()
             if sched and sched[0][0] <= self._now_ns:
                 return
