@@ -228,7 +228,6 @@ class WallClock(Clock):
 
 #: Clocks attached to loops evclock does not own (wall clocks, embedded sim drivers).
 _attached: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, Clock] = weakref.WeakKeyDictionary()
-_wall_clock_type: list[ClockType] = [STEADY]
 
 
 def attach_clock(loop: asyncio.AbstractEventLoop, clock: Clock) -> None:
@@ -273,7 +272,7 @@ def clock() -> Clock:
             "start the program with evclock.run() (or attach a driver), or unset "
             "EVCLOCK_USE_SIM_TIME to run on wall time"
         )
-    wall = WallClock(_wall_clock_type[0])
+    wall = WallClock(STEADY)
     _attached[loop] = wall
     return wall
 

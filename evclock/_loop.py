@@ -199,6 +199,8 @@ class SimEventLoop(asyncio.SelectorEventLoop):
     ) -> asyncio.TimerHandle:
         if delay is None:
             raise TypeError("delay must not be None")
+        if not -math.inf < delay < math.inf:
+            return self.call_at(self.time() + delay, callback, *args, context=context)
         when_ns = self._now_ns + round(delay * 1e9)
         return self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
 
@@ -206,11 +208,18 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         self,
         when: float,
         callback: Callable[[Unpack[_Ts]], object],
-        *args: *_Ts,
+        *args: Unpack[_Ts],
         context: contextvars.Context | None = None,
     ) -> asyncio.TimerHandle:
         if when is None:
             raise TypeError("when cannot be None")
+        if when == math.inf:
+            # "Never" (anyio's sleep_forever, an unbounded CancelScope): a handle that is
+            # never scheduled, so it can neither fire nor move time.
+            self._check_closed()
+            return events.TimerHandle(when, callback, args, self, context)
+        if when != when or when == -math.inf:
+            raise InvalidArgumentError(f"call_at() needs a finite time, got {when!r}")
         return self._call_at_ns(round(when * 1e9), when, callback, args, context)
 
     def _call_at_ns(
@@ -631,20 +640,22 @@ class SimEventLoop(asyncio.SelectorEventLoop):
 
 
 def _describe_task(task: asyncio.Task[Any]) -> str:
+    """``name: outer() at file:line -> inner() at file:line, waiting on <future>``."""
     coro: Any = task.get_coro()
-    where = getattr(coro, "__qualname__", repr(coro))
-    awaiting: Any = None
-    # Walk down the await chain to the innermost coroutine frame.
+    frames = []
     while coro is not None:
         frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
         if frame is not None:
-            where = f"{frame.f_code.co_qualname}() at {frame.f_code.co_filename}:{frame.f_lineno}"
-        awaiting = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
-        if awaiting is None or not (hasattr(awaiting, "cr_frame") or hasattr(awaiting, "gi_frame")):
+            code = frame.f_code
+            name = code.co_qualname.rpartition("<locals>.")[2]
+            frames.append(f"{name}() at {code.co_filename}:{frame.f_lineno}")
+        coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
+        if not (hasattr(coro, "cr_frame") or hasattr(coro, "gi_frame")):
             break
-        coro = awaiting
-    waits_on = f", waiting on {_short(awaiting)}" if awaiting is not None else ""
-    return f"{task.get_name()}: {where}{waits_on}"
+    where = " -> ".join(frames[:1] + frames[-1:]) if len(frames) > 1 else "".join(frames)
+    waiter = getattr(task, "_fut_waiter", None)
+    waits_on = f", waiting on {_short(waiter)}" if waiter is not None else ""
+    return f"{task.get_name()}: {where or repr(task.get_coro())}{waits_on}"
 
 
 def _short(obj: object) -> str:

@@ -8,7 +8,7 @@ import os
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
-from ._clock import _wall_clock_type
+from ._clock import WallClock, attach_clock
 from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
 from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
 from ._pacing import DEFAULT_MAX_LAG
@@ -174,8 +174,15 @@ def run(
                     "a time source was given but use_sim_time resolved to False (argument or "
                     f"{ENV_USE_SIM_TIME}); drop the source or enable sim time"
                 )
-            _wall_clock_type[0] = wall_clock
-            with asyncio.Runner(debug=debug) as runner:
+            wall = WallClock(wall_clock)
+
+            def wall_loop() -> asyncio.AbstractEventLoop:
+                # The launch decision is recorded on the loop, so it wins over the environment.
+                loop = asyncio.new_event_loop()
+                attach_clock(loop, wall)
+                return loop
+
+            with asyncio.Runner(debug=debug, loop_factory=wall_loop) as runner:
                 return runner.run(main)
         if source is not None and not isinstance(source, TimeSource):
             raise InvalidTypeError(f"source must be a TimeSource, got {type(source).__name__}")

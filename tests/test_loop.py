@@ -1,0 +1,226 @@
+"""The simulation loop: time model, advancement, entry points, the controller API."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+import evclock
+from evclock import Duration, Time
+
+
+def test_time_jumps_exactly_to_the_next_deadline() -> None:
+    seen: list[int] = []
+
+    async def main() -> None:
+        clock = evclock.clock()
+        for d in (0.25, Duration(nanoseconds=7), 1, 0.0):
+            await clock.sleep(d)
+            seen.append(clock.now_ns())
+
+    evclock.run(main())
+    assert seen == [250_000_000, 250_000_007, 1_250_000_007, 1_250_000_007]
+
+
+def test_loop_time_is_float_seconds_of_the_integer_clock() -> None:
+    async def main() -> tuple[float, int]:
+        await evclock.clock().sleep(Duration(nanoseconds=1_500_000_001))
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        return loop.time(), loop.now_ns
+
+    t, ns = evclock.run(main())
+    assert ns == 1_500_000_001
+    assert t == 1_500_000_001 / 1e9
+
+
+def test_run_returns_the_result_and_propagates_errors() -> None:
+    async def ok() -> str:
+        await asyncio.sleep(3)
+        return "done"
+
+    async def bad() -> None:
+        await asyncio.sleep(1)
+        raise KeyError("boom")
+
+    assert evclock.run(ok()) == "done"
+    with pytest.raises(KeyError, match="boom"):
+        evclock.run(bad())
+
+
+def test_loop_factory_with_asyncio_runner() -> None:
+    async def main() -> float:
+        await asyncio.sleep(10)
+        return asyncio.get_running_loop().time()
+
+    with asyncio.Runner(loop_factory=evclock.loop_factory(start=100)) as runner:
+        assert runner.run(main()) == 110.0
+        # A second run on the same runner continues the same sim clock.
+        assert runner.run(main()) == 120.0
+
+
+def test_sim_event_loop_class_is_itself_a_loop_factory() -> None:
+    async def main() -> int:
+        await asyncio.sleep(0.5)
+        return evclock.clock().now_ns()
+
+    with asyncio.Runner(loop_factory=evclock.SimEventLoop) as runner:
+        assert runner.run(main()) == 500_000_000
+
+
+def test_all_work_at_a_time_finishes_before_time_advances() -> None:
+    log: list[tuple[str, float]] = []
+
+    async def chatty(name: str) -> None:
+        for _ in range(3):
+            log.append((name, evclock.clock().now().seconds))
+            await asyncio.sleep(0)  # yields, but never advances time
+
+    async def main() -> None:
+        async with asyncio.TaskGroup() as tg:
+            tg.create_task(chatty("a"))
+            tg.create_task(chatty("b"))
+        await evclock.clock().sleep(1)
+        log.append(("after", evclock.clock().now().seconds))
+
+    evclock.run(main())
+    assert log[-1] == ("after", 1.0)
+    assert all(t == 0.0 for _, t in log[:-1])
+
+
+def test_sleep_until_and_now_are_sim_times() -> None:
+    async def main() -> Time:
+        clock = evclock.clock()
+        await clock.sleep_until(clock.now() + Duration(seconds=2))
+        await clock.sleep_until(Time(seconds=1))  # in the past: returns after one yield
+        return clock.now()
+
+    now = evclock.run(main())
+    assert now == Time(seconds=2)
+    assert now.clock_type is evclock.SIM
+
+
+def test_epoch_like_start_times_do_not_spin_or_lose_timers() -> None:
+    start = 1_700_000_000
+
+    async def main() -> list[int]:
+        clock = evclock.clock()
+        out = []
+        for _ in range(1000):
+            await asyncio.sleep(0.001)
+        out.append(clock.now_ns())
+        for _ in range(1000):
+            await clock.sleep(0.001)
+        out.append(clock.now_ns())
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
+        loop.call_at(loop.time() + 0.5, fut.set_result, "fired")
+        out.append(len(await fut))
+        out.append(clock.now_ns())
+        return out
+
+    a, b, fired, c = evclock.run(main(), start=start)
+    base = start * 10**9
+    assert a == base + 1_000_000_000  # call_later keeps integer precision at epoch scale
+    assert b == base + 2_000_000_000
+    assert fired == 5
+    # call_at goes through a float of ~1.7e9 s: exact to within the float's resolution.
+    assert abs(c - (base + 2_500_000_000)) <= 256
+
+
+def test_24_hours_of_rate_deadlines_are_exact_integers() -> None:
+    # The full 86.4 million ticks through the loop run in benchmarks/day_at_1khz.py; here the
+    # deadline formula (what could drift) is checked along the whole day.
+    ticks = 24 * 3600 * 1000
+    rate = evclock.Rate(_FakeClock(), 1000)
+    rate._start = 0
+    assert rate._deadline(ticks) == 86_400 * 10**9
+    assert all(rate._deadline(i) == i * 1_000_000 for i in range(0, ticks, 9_999_991))
+    # A period that is not a whole number of nanoseconds (240 Hz) does not drift either.
+    rate240 = evclock.Rate(_FakeClock(), 240)
+    rate240._start = 0
+    assert rate240._deadline(240 * 86_400) == 86_400 * 10**9
+    assert rate240._deadline(1) == 4_166_666
+
+
+def test_ten_simulated_minutes_of_a_1khz_rate_loop_end_exactly() -> None:
+    ticks = 600 * 1000
+
+    async def main() -> tuple[int, int, int]:
+        clock = evclock.clock()
+        rate = clock.rate(1000)
+        async for tick in rate:
+            if tick.index == ticks:
+                break
+        return clock.now_ns(), rate.stats.ticks, rate.stats.missed
+
+    now, count, missed = evclock.run(main(), start=1_700_000_000)
+    assert now == (1_700_000_000 + 600) * 10**9
+    assert count == ticks + 1
+    assert missed == 0
+
+
+class _FakeClock:
+    clock_type = evclock.SIM
+
+    def now_ns(self) -> int:
+        return 0
+
+
+def test_clock_on_a_plain_asyncio_loop_is_the_wall_clock(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.delenv("EVCLOCK_USE_SIM_TIME", raising=False)
+
+    async def main() -> evclock.Clock:
+        return evclock.clock()
+
+    clock = asyncio.run(main())
+    assert isinstance(clock, evclock.WallClock)
+    assert clock.clock_type is evclock.STEADY
+
+
+def test_use_sim_time_false_runs_on_wall_time() -> None:
+    async def main() -> tuple[str, bool]:
+        clock = evclock.clock()
+        t0 = clock.now()
+        await clock.sleep(0.01)
+        return clock.clock_type.value, (clock.now() - t0) >= Duration(seconds=0.01)
+
+    assert evclock.run(main(), use_sim_time=False) == ("steady", True)
+    assert evclock.run(main(), use_sim_time=False, wall_clock=evclock.SYSTEM)[0] == "system"
+
+
+@pytest.mark.parametrize(
+    ("env", "expected"), [("1", "sim"), ("true", "sim"), ("0", "steady"), ("off", "steady")]
+)
+def test_use_sim_time_from_the_environment(
+    monkeypatch: pytest.MonkeyPatch, env: str, expected: str
+) -> None:
+    monkeypatch.setenv("EVCLOCK_USE_SIM_TIME", env)
+
+    async def main() -> str:
+        return evclock.clock().clock_type.value
+
+    assert evclock.run(main()) == expected
+    # The argument wins over the environment.
+    assert evclock.run(main(), use_sim_time=expected != "sim") != expected
+
+
+def test_until_cancels_a_program_still_running() -> None:
+    async def forever() -> None:
+        while True:
+            await evclock.clock().sleep(1)
+
+    with pytest.raises(evclock.SimTimeLimitError, match=r"until limit \(5 s of sim time\)"):
+        evclock.run(forever(), until=5)
+
+
+def test_timeout_math_is_exact_for_large_sleep_counts() -> None:
+    async def main() -> int:
+        clock = evclock.clock()
+        for _ in range(10_000):
+            await clock.sleep(0.1)
+        return clock.now_ns()
+
+    # 10,000 float additions of 0.1 would drift; integer nanoseconds do not.
+    assert evclock.run(main()) == 1000 * 10**9
