@@ -44,7 +44,7 @@ from ._errors import (
     StallError,
 )
 from ._jumps import JumpHandle, TimeJump
-from ._pacing import DEFAULT_MAX_LAG, Pacer
+from ._pacing import DEFAULT_MAX_LAG, Pacer, check_max_lag, check_rtf
 from ._threads import busy_threads
 from ._time import SIM, Time
 from .sources import TimeSource, VirtualTimeSource
@@ -137,7 +137,12 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
                 f"got {type(source).__name__}"
             )
+        # Validate everything before the selector (a resource) exists; until then the loop
+        # counts as closed, so a rejected loop's __del__ has nothing to complain about.
+        self._closed = True
         self._stall_timeout = _check_stall_timeout(stall_timeout)
+        check_rtf(rtf)
+        check_max_lag(max_lag)
         super().__init__(selector)
         self._source = source
         source.attach(self)

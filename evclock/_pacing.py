@@ -31,6 +31,15 @@ def check_rtf(rtf: object) -> float | None:
     return value
 
 
+def check_max_lag(max_lag: object) -> float:
+    """Validate a lag bound: a positive finite number of wall seconds."""
+    if isinstance(max_lag, bool) or not isinstance(max_lag, int | float):
+        raise InvalidTypeError(f"max_lag must be a number of seconds, got {type(max_lag).__name__}")
+    if not math.isfinite(max_lag) or max_lag <= 0:
+        raise InvalidArgumentError(f"max_lag must be a positive number of seconds, got {max_lag!r}")
+    return float(max_lag)
+
+
 class RtfMeter:
     """Measures the achieved real-time factor: sim seconds per wall second."""
 
@@ -92,7 +101,7 @@ class Pacer:
         self._wall = wall
         self._rtf = check_rtf(rtf)
         self.strict = bool(strict)
-        self.max_lag = float(max_lag)
+        self.max_lag = check_max_lag(max_lag)
         self._anchor: tuple[float, int] | None = None
         self.paused = False
         self._step_budget = 0

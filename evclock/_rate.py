@@ -258,8 +258,7 @@ class Timer:
                 start, index = clock.now_ns(), 1
                 continue
             now = clock.now_ns()
-            passed = (now - start) // self._period_ns
-            self.stats.record(now - deadline, passed - index)
+            self.stats.record(now - deadline, 0)
             try:
                 result = self._callback()
                 if inspect.isawaitable(result):
@@ -272,8 +271,10 @@ class Timer:
             if self.oneshot:
                 self._next_ns = None
                 return
-            now = clock.now_ns()
-            index = max(passed, (now - start) // self._period_ns) + 1
+            # An overrunning callback skips the deadlines that passed meanwhile.
+            following = max(index + 1, (clock.now_ns() - start) // self._period_ns + 1)
+            self.stats.missed += following - index - 1
+            index = following
 
     def _fail(self, exc: BaseException) -> None:
         self._exception = exc
