@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import re
-from collections.abc import Callable, Coroutine
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -37,8 +37,8 @@ def raises_exactly(error: type[Exception], message: str) -> Any:
             Duration(seconds=-2),
             evclock.InvalidArgumentError,
             "sleep duration must not be negative, "
-            "got Duration(nanoseconds=-2000000000); a negative sleep is a bug in the caller; to wait "
-            "until a time use sleep_until()",
+            "got Duration(nanoseconds=-2000000000); a negative sleep is a bug in the caller; "
+            "to wait until a time use sleep_until()",
         ),
         (float("nan"), evclock.InvalidArgumentError, "sleep duration must be a number, got NaN"),
         (float("inf"), evclock.InvalidArgumentError, "sleep duration must be finite, got inf"),
@@ -174,7 +174,8 @@ def test_run_needs_a_coroutine() -> None:
 
     with raises_exactly(
         evclock.InvalidTypeError,
-        "run() needs a coroutine object such as main(), got function; call the function: run(main())",
+        "run() needs a coroutine object such as main(), got function; "
+        "call the function: run(main())",
     ):
         evclock.run(main)  # type: ignore[arg-type]
 

@@ -140,7 +140,7 @@ def test_bad_rate_type_and_policy() -> None:
     async def main() -> None:
         clock = evclock.clock()
         with pytest.raises(
-            evclock.InvalidTypeError, match="^rate must be a number of hertz, got str$"
+            evclock.InvalidTypeError, match=r"^rate must be a number of hertz, got str$"
         ):
             clock.rate("10")  # type: ignore[arg-type]
         with pytest.raises(evclock.InvalidTypeError):
@@ -276,7 +276,7 @@ def test_timer_needs_a_callable() -> None:
         evclock.clock().timer(1, "not callable")  # type: ignore[arg-type]
 
     with pytest.raises(
-        evclock.InvalidTypeError, match="^timer callback must be callable, got str$"
+        evclock.InvalidTypeError, match=r"^timer callback must be callable, got str$"
     ):
         evclock.run(main())
 
