@@ -102,11 +102,12 @@ def test_rates_and_timers_re_anchor_after_a_jump() -> None:
             await clock.sleep(2.5)
             source().set_time(10 * 10**9)
 
-        asyncio.create_task(jumper())
+        jumping = asyncio.create_task(jumper())
         async for tick in clock.rate(1):
             ticks.append((tick.index, tick.actual.seconds))
             if len(ticks) == 5:
                 break
+        await jumping
         return ticks, calls
 
     ticks, calls = evclock.run(main())
@@ -122,8 +123,9 @@ def test_asyncio_timers_keep_their_remaining_delay_across_a_jump() -> None:
             await evclock.clock().sleep(1)
             source().set_time(100 * 10**9)
 
-        asyncio.create_task(jumper())
+        jumping = asyncio.create_task(jumper())
         await asyncio.sleep(3)  # 2 s were left at the jump
+        await jumping
         return loop.time()
 
     assert evclock.run(main()) == 102.0
