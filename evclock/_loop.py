@@ -145,8 +145,8 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         check_max_lag(max_lag)
         super().__init__(selector)
         self._source = source
-        source.attach(self)
         self._now_ns: int = source.now_ns
+        source.attach(self)
         self._seq = itertools.count().__next__
         # Registered file descriptors, read on every iteration: the selector's own dict when
         # it exposes one (all stdlib selectors do), else its public mapping view. The
@@ -157,6 +157,8 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         )
         if paused:
             self._pacer.pause()
+        self._jump_when_idle = False
+        self._update_fast_path()
         self._holds = 0
         self._holds_lock = threading.Lock()
         self._held_since: float | None = None
@@ -267,15 +269,31 @@ class SimEventLoop(asyncio.SelectorEventLoop):
     def _run_once(self) -> None:
         ready = self._ready
         io_map = self._io_map
+        sched = self._scheduled  # mutated in place only, so this reference stays valid
         heappop = heapq.heappop
         while True:
             if not ready and not self._stopping:
-                self._idle()
+                # Fast path: a pure jump to a live head entry when nothing else can matter
+                # (no I/O, no outside work, no other thread, no pacing). Else the full rule.
+                if (
+                    self._jump_when_idle
+                    and sched
+                    and len(io_map) <= 1
+                    and not self._holds
+                    and len(_thread_registry) + len(_thread_limbo) <= 1
+                ):
+                    when, _, kind, obj = sched[0]
+                    if obj.done() if kind == _SLEEP else obj._cancelled:
+                        self._idle()
+                    elif when > self._now_ns:
+                        self._held_since = None
+                        self._now_ns = when
+                else:
+                    self._idle()
             elif len(io_map) > 1:
                 self._poll_io(0)
             # Entries due now are taken before anything runs, so whatever the callbacks
             # below schedule for the same instant waits for the next iteration, as in asyncio.
-            sched = self._scheduled
             now = self._now_ns
             batch = None
             if sched and sched[0][0] <= now:
@@ -286,12 +304,12 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 debug = self._debug
                 for _ in range(len(ready)):
                     handle = ready.popleft()
-                    if handle._cancelled:
+                    if handle._cancelled:  # type: ignore[attr-defined]
                         continue
                     if debug:
                         self._run_handle_debug(handle)
                     else:
-                        handle._run()
+                        handle._run()  # type: ignore[attr-defined]
             if batch is not None:
                 self._fire(batch)
             # Keep going without returning to run_forever() only in the plain case of
@@ -344,6 +362,17 @@ class SimEventLoop(asyncio.SelectorEventLoop):
             if not callbacks:
                 fut.set_result(result)
                 continue
+            if len(callbacks) == 1:  # the sleeping task's wake-up: the usual case
+                callback, ctx = callbacks[0]
+                fut.remove_done_callback(callback)
+                fut.set_result(result)
+                try:
+                    ctx.run(callback, fut)
+                except (SystemExit, KeyboardInterrupt):
+                    raise
+                except BaseException as exc:
+                    self._report_wakeup_error(exc)
+                continue
             for callback, _ctx in callbacks:
                 fut.remove_done_callback(callback)
             fut.set_result(result)
@@ -353,9 +382,12 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 except (SystemExit, KeyboardInterrupt):
                     raise
                 except BaseException as exc:
-                    self.call_exception_handler(
-                        {"message": "Exception in callback of a sim-time sleep", "exception": exc}
-                    )
+                    self._report_wakeup_error(exc)
+
+    def _report_wakeup_error(self, exc: BaseException) -> None:
+        self.call_exception_handler(
+            {"message": "Exception in the wake-up callback of a sim-time sleep", "exception": exc}
+        )
 
     def _drop_cancelled_head(self) -> None:
         sched = self._scheduled
@@ -385,7 +417,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
             else:
                 keep.append(entry)
         heapq.heapify(keep)
-        self._scheduled = keep
+        self._scheduled[:] = keep
         self._timer_cancelled_count = 0
 
     def _idle(self) -> None:
@@ -416,7 +448,10 @@ class SimEventLoop(asyncio.SelectorEventLoop):
             self._wait_for_io_or_deadlock()
             return
         pacer = self._pacer
-        self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
+        if self._jump_when_idle and target is not None:
+            self._now_ns = max(target, self._now_ns)
+        else:
+            self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
 
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
@@ -524,6 +559,10 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         finally:
             self._release_hold_cb(None)
 
+    def _update_fast_path(self) -> None:
+        # A discrete-event source with no pacing is advanced by the loop itself: a jump.
+        self._jump_when_idle = self._source.discrete_event and self._pacer.idle
+
     # ------------------------------------------------------------ pacing API
 
     @property
@@ -534,6 +573,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
     @rtf.setter
     def rtf(self, value: float | None) -> None:
         self._pacer.rtf = value
+        self._update_fast_path()
 
     @property
     def paused(self) -> bool:
@@ -560,11 +600,13 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         """Stop sim time from advancing; I/O keeps being served. Call from the loop's thread."""
         self._require_running("pause()")
         self._pacer.pause()
+        self._update_fast_path()
 
     def resume(self) -> None:
         """Let sim time advance again at the requested rtf."""
         self._require_running("resume()")
         self._pacer.resume()
+        self._update_fast_path()
 
     def step(self, count: int = 1) -> None:
         """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
@@ -625,7 +667,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
             else:
                 obj._scheduled = False
         heapq.heapify(kept)
-        self._scheduled = kept
+        self._scheduled[:] = kept
         self._timer_cancelled_count = 0
         self._pacer.reanchor()
         for handler in handlers:

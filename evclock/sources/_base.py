@@ -27,6 +27,10 @@ class TimeSource(abc.ABC):
     #: idle program with nothing scheduled is a deadlock.
     free_running: bool = False
 
+    #: True when advancing is a pure jump to the target with no side effects (virtual time):
+    #: the loop then moves time itself and reads it back through ``loop.now_ns``.
+    discrete_event: bool = False
+
     _loop: SimEventLoop | None = None
 
     def attach(self, loop: SimEventLoop) -> None:

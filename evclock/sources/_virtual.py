@@ -14,6 +14,7 @@ class VirtualTimeSource(TimeSource):
     """
 
     free_running = False
+    discrete_event = True
 
     def __init__(self, start_ns: int = 0) -> None:
         if type(start_ns) is not int:
@@ -26,7 +27,9 @@ class VirtualTimeSource(TimeSource):
 
     @property
     def now_ns(self) -> int:
-        return self._now
+        # Once attached, the loop advances virtual time itself (discrete_event).
+        loop = self._loop
+        return self._now if loop is None else loop.now_ns
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
         if target_ns is not None and target_ns > self._now and (gate is None or gate(target_ns)):
@@ -46,7 +49,7 @@ class VirtualTimeSource(TimeSource):
         if loop is None:
             self._now = new_ns
             return
-        loop._jump_time(self._now, new_ns, self._assign)
+        loop._jump_time(loop.now_ns, new_ns, self._assign)
 
     def _assign(self, new_ns: int) -> None:
         self._now = new_ns
