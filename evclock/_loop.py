@@ -304,12 +304,12 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 debug = self._debug
                 for _ in range(len(ready)):
                     handle = ready.popleft()
-                    if handle._cancelled:  # type: ignore[attr-defined]
+                    if handle._cancelled:
                         continue
                     if debug:
                         self._run_handle_debug(handle)
                     else:
-                        handle._run()  # type: ignore[attr-defined]
+                        handle._run()
             if batch is not None:
                 self._fire(batch)
             # Keep going without returning to run_forever() only in the plain case of
