@@ -27,7 +27,7 @@ from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
 from ._runner import ENV_USE_SIM_TIME, loop_factory, resolve_use_sim_time, run
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
-from .sources import TimeSource, VirtualTimeSource
+from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
 
 __version__ = "0.1.0"
 
@@ -55,11 +55,13 @@ __all__ = [
     "NotRunningError",
     "PacingError",
     "PhysicsError",
+    "PyBulletTimeSource",
     "Rate",
     "SimClock",
     "SimEventLoop",
     "SimTimeLimitError",
     "StallError",
+    "StepHook",
     "Tick",
     "Time",
     "TimeJump",

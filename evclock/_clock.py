@@ -178,16 +178,16 @@ class SimClock(Clock):
                 ns = _sleep_ns(duration)
         else:
             ns = _sleep_ns(duration)
+        return self._sleep_until_ns(self._loop._now_ns + ns)
+
+    def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
         loop = self._loop
         if loop._closed:
             loop._check_closed()
         fut: asyncio.Future[None] = _Future(loop=loop)
-        heappush(loop._scheduled, (loop._now_ns + ns, loop._seq(), 0, fut))
+        now = loop._now_ns
+        heappush(loop._scheduled, (when_ns if when_ns > now else now, loop._seq(), 0, fut))
         return fut
-
-    def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
-        loop = self._loop
-        return loop._push_sleep(max(when_ns, loop._now_ns))
 
     def _jump_registry(self) -> list[JumpHandle]:
         return self._loop._jump_handlers

@@ -99,6 +99,9 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         executor jobs) or by waiting for I/O before :class:`StallError`; None waits forever.
     :param paused: start paused (see :meth:`resume` and :meth:`step`).
     :param watch_threads: hold sim time while other non-daemon threads are busy (default).
+    :param selector: the selector serving I/O (default: the platform's best).
+    :param wall: the wall clock pacing reads, in seconds (default ``time.perf_counter``);
+        tests inject a fake one.
     """
 
     if TYPE_CHECKING:
@@ -129,6 +132,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         paused: bool = False,
         watch_threads: bool = True,
         selector: Any = None,
+        wall: Callable[[], float] = time.perf_counter,
     ) -> None:
         if source is None:
             source = VirtualTimeSource()
@@ -153,7 +157,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         # self-pipe is always registered, so "real I/O" means more than one entry.
         self._io_map: Any = getattr(self._selector, "_fd_to_key", None) or self._selector.get_map()
         self._pacer = Pacer(
-            self._wait_io, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag
+            self._wait_io, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
         )
         if paused:
             self._pacer.pause()
@@ -248,14 +252,6 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         timer._scheduled = True
         handle: asyncio.TimerHandle = timer
         return handle
-
-    def _push_sleep(self, when_ns: int) -> asyncio.Future[None]:
-        """Schedule a bare future resolved at ``when_ns`` (the fast path of ``clock.sleep``)."""
-        if self._closed:
-            self._check_closed()
-        fut: asyncio.Future[None] = futures.Future(loop=self)
-        heapq.heappush(self._scheduled, (when_ns, self._seq(), _SLEEP, fut))
-        return fut
 
     def _check_closed(self) -> None:
         if self._closed:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import dataclasses
 import inspect
 import math
 from collections.abc import Awaitable, Callable
@@ -12,7 +11,7 @@ from fractions import Fraction
 from typing import TYPE_CHECKING, Literal
 
 from ._errors import ClockJumped, InvalidArgumentError, InvalidTypeError
-from ._time import Duration, Time, to_nanoseconds
+from ._time import ClockType, Duration, Time, to_nanoseconds
 
 if TYPE_CHECKING:
     from ._clock import Clock
@@ -45,23 +44,55 @@ def _check_policy(policy: object) -> Policy:
     return policy  # type: ignore[return-value]
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
 class Tick:
     """One iteration of a rate loop.
 
     ``expected``: the deadline this tick stands for; ``actual``: when it was delivered;
-    ``missed``: deadlines since the previous tick that got no tick at all.
+    ``missed``: deadlines since the previous tick that got no tick at all. The integer
+    ``expected_ns``/``actual_ns`` are there too; the ``Time`` objects are built on access
+    (a 1 kHz loop should not pay for what its body does not read).
     """
 
-    index: int
-    expected: Time
-    actual: Time
-    missed: int
+    __slots__ = ("_clock_type", "actual_ns", "expected_ns", "index", "missed")
+
+    def __init__(
+        self, index: int, expected_ns: int, actual_ns: int, missed: int, clock_type: ClockType
+    ) -> None:
+        self.index = index
+        self.expected_ns = expected_ns
+        self.actual_ns = actual_ns
+        self.missed = missed
+        self._clock_type = clock_type
+
+    @property
+    def expected(self) -> Time:
+        """The deadline this tick stands for."""
+        return Time._from_ns(self.expected_ns, self._clock_type)
+
+    @property
+    def actual(self) -> Time:
+        """When the tick was delivered."""
+        return Time._from_ns(self.actual_ns, self._clock_type)
 
     @property
     def lateness(self) -> Duration:
         """``actual - expected`` (zero on an unloaded virtual clock)."""
-        return self.actual - self.expected
+        return Duration._from_ns(self.actual_ns - self.expected_ns)
+
+    def _key(self) -> tuple[int, int, int, int, ClockType]:
+        return (self.index, self.expected_ns, self.actual_ns, self.missed, self._clock_type)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Tick) and self._key() == other._key()
+
+    def __hash__(self) -> int:
+        return hash(self._key())
+
+    def __repr__(self) -> str:
+        return (
+            f"Tick(index={self.index}, expected={self.expected}, actual={self.actual}, "
+            f"missed={self.missed})"
+        )
 
 
 class LoopStats:
@@ -76,10 +107,12 @@ class LoopStats:
 
     def record(self, lateness_ns: int, missed: int) -> None:
         self.ticks += 1
-        self.missed += missed
-        self.total_lateness_ns += lateness_ns
-        if lateness_ns > self.max_lateness_ns:
-            self.max_lateness_ns = lateness_ns
+        if missed:
+            self.missed += missed
+        if lateness_ns:
+            self.total_lateness_ns += lateness_ns
+            if lateness_ns > self.max_lateness_ns:
+                self.max_lateness_ns = lateness_ns
         self.recent_lateness_ns.append(lateness_ns)
 
     @property
@@ -149,8 +182,10 @@ class Rate:
         return self._policy
 
     def _deadline(self, index: int) -> int:
-        assert self._start is not None
-        return self._start + index * self._num // self._den
+        start = self._start
+        if start is None:
+            raise RuntimeError("the rate has not started: iterate it first")
+        return start + index * self._num // self._den
 
     def __aiter__(self) -> Rate:
         return self
@@ -164,7 +199,7 @@ class Rate:
             self._start, self._index = now, 0
             return self._tick(0, now, now, 0)
         index = self._index + 1
-        deadline = self._deadline(index)
+        deadline = self._start + index * self._num // self._den
         if now < deadline:
             try:
                 await clock._sleep_until_ns(deadline)
@@ -185,8 +220,7 @@ class Rate:
     def _tick(self, index: int, expected: int, actual: int, missed: int) -> Tick:
         self._index = index
         self.stats.record(actual - expected, missed)
-        ct = self._clock.clock_type
-        return Tick(index, Time._from_ns(expected, ct), Time._from_ns(actual, ct), missed)
+        return Tick(index, expected, actual, missed, self._clock.clock_type)
 
     async def sleep(self) -> Tick:
         """Wait for the next tick (the ROS ``Rate.sleep`` style of use)."""

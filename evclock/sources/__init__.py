@@ -1,6 +1,14 @@
 """Time sources for the simulation loop."""
 
 from ._base import Gate, TimeSource
+from ._pybullet import PyBulletTimeSource, StepHook, exact_time_step
 from ._virtual import VirtualTimeSource
 
-__all__ = ["Gate", "TimeSource", "VirtualTimeSource"]
+__all__ = [
+    "Gate",
+    "PyBulletTimeSource",
+    "StepHook",
+    "TimeSource",
+    "VirtualTimeSource",
+    "exact_time_step",
+]
