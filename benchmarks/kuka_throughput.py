@@ -1,0 +1,168 @@
+"""KUKA reaching: evclock-driven controllers vs a hand-written synchronous loop, same work.
+
+Usage: python benchmarks/kuka_throughput.py [--seconds 20] [--repeat 3] [--rtf-check 10]
+
+Both variants load the same KUKA world and run the same control code (the functions below):
+a joint controller (slew toward the IK goal, send position targets) at ``control_hz`` and an
+IK planner at 10 Hz, over 240 Hz physics, cycling through the scenario's targets. The
+synchronous loop decides which controller is due on each physics step with the same integer
+deadline arithmetic as ``clock.rate``; the evclock variant runs the controllers as rate-loop
+tasks on a ``PyBulletTimeSource``. Reported: physics steps per wall second for both, in the
+same run, and their ratio (targets: >= 0.8 with the controller at 240 Hz, >= 0.95 at 100 Hz).
+``--rtf-check S`` also runs S simulated seconds at rtf=1 and reports the achieved real-time
+factor (target: within 1%).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+import time
+from fractions import Fraction
+from pathlib import Path
+
+import numpy as np
+import pybullet as p
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+import evclock  # noqa: E402
+from sims.kuka import REST_POSE, KukaReach  # noqa: E402
+
+PHYSICS_HZ = 240
+PLANNER_HZ = 10
+
+
+class Controllers:
+    """The control work both variants do, on one KUKA world."""
+
+    def __init__(self, client: int, control_hz: float) -> None:
+        self.arm = KukaReach(client, seed=0, control_hz=control_hz)
+        self.command = np.array(REST_POSE)
+        self.max_step = self.arm.max_joint_speed / control_hz
+        self.forces = [self.arm.max_joint_torque] * len(self.arm.joints)
+        self.target_index = 0
+        self.plans = 0
+
+    def control(self) -> None:
+        arm = self.arm
+        self.command += np.clip(arm.goal - self.command, -self.max_step, self.max_step)
+        p.setJointMotorControlArray(
+            arm.robot,
+            arm.joints,
+            p.POSITION_CONTROL,
+            targetPositions=self.command.tolist(),
+            forces=self.forces,
+            physicsClientId=arm.client,
+        )
+
+    def plan(self) -> None:
+        arm = self.arm
+        target = arm.targets[self.target_index]
+        if np.linalg.norm(arm.flange_position() - target) < arm.tolerance:
+            self.target_index = (self.target_index + 1) % len(arm.targets)
+            target = arm.targets[self.target_index]
+        arm.goal = np.array(arm._inverse_kinematics(target))
+        self.plans += 1
+
+
+def ticks_due(hz: float, steps: int) -> list[bool]:
+    """Per physics step: is a rate tick due, with clock.rate's integer deadlines (tick 0 at 0)."""
+    period = Fraction(10**9) / Fraction(hz)
+    step_ns = Fraction(10**9, PHYSICS_HZ)
+    due = [False] * steps
+    index = 0
+    while True:
+        deadline = index * period.numerator // period.denominator
+        # The first step whose (floor) time is >= the deadline (sleeps quantise up).
+        step = -(-deadline * step_ns.denominator // step_ns.numerator)
+        while step * step_ns.numerator // step_ns.denominator < deadline:
+            step += 1
+        if step >= steps:
+            return due
+        due[step] = True
+        index += 1
+
+
+def run_synchronous(control_hz: float, seconds: float) -> tuple[float, int]:
+    client = p.connect(p.DIRECT)
+    try:
+        ctl = Controllers(client, control_hz)
+        steps = round(seconds * PHYSICS_HZ)
+        control_due = ticks_due(control_hz, steps)
+        plan_due = ticks_due(PLANNER_HZ, steps)
+        started = time.perf_counter()
+        for step in range(steps):
+            if control_due[step]:
+                ctl.control()
+            if plan_due[step]:
+                ctl.plan()
+            p.stepSimulation(physicsClientId=client)
+        return time.perf_counter() - started, steps
+    finally:
+        p.disconnect(client)
+
+
+def run_evclock(control_hz: float, seconds: float, rtf: float | None = None) -> tuple[float, int]:
+    source = evclock.PyBulletTimeSource.connect()
+    ctl = Controllers(source.client, control_hz)
+
+    async def every(hz: float, work: object) -> None:
+        async for _tick in evclock.clock().rate(hz):
+            work()  # type: ignore[operator]
+
+    async def main() -> tuple[float, int]:
+        started = time.perf_counter()
+        async with asyncio.TaskGroup() as tg:
+            control = tg.create_task(every(control_hz, ctl.control))
+            planner = tg.create_task(every(PLANNER_HZ, ctl.plan))
+            await evclock.clock().sleep(seconds)
+            control.cancel()
+            planner.cancel()
+        return time.perf_counter() - started, source.step_index
+
+    return evclock.run(main(), source=source, rtf=rtf)
+
+
+def best_rate(fn: object, repeat: int) -> float:
+    rates = []
+    for _ in range(repeat):
+        wall, steps = fn()  # type: ignore[operator]
+        rates.append(steps / wall)
+    return max(rates)
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seconds", type=float, default=20.0, help="simulated seconds per run")
+    parser.add_argument("--repeat", type=int, default=3, help="runs per variant (best is kept)")
+    parser.add_argument(
+        "--rtf-check", type=float, default=10.0, help="sim seconds at rtf=1 (0: skip)"
+    )
+    args = parser.parse_args()
+    print(f"KUKA, {args.seconds:g} simulated s per run, best of {args.repeat}, 240 Hz physics")
+    print(
+        f"{'controller':>10} {'sync steps/s':>14} {'evclock steps/s':>16} {'ratio':>7} {'target':>7}"
+    )
+    verdicts = []
+    for hz, target in ((240.0, 0.8), (100.0, 0.95)):
+        sync = best_rate(lambda hz=hz: run_synchronous(hz, args.seconds), args.repeat)
+        ev = best_rate(lambda hz=hz: run_evclock(hz, args.seconds), args.repeat)
+        ratio = ev / sync
+        verdicts.append(ratio >= target)
+        verdict = "PASS" if ratio >= target else "MISS"
+        print(f"{hz:>8g}Hz {sync:>14,.0f} {ev:>16,.0f} {ratio:>7.3f} {target:>6} {verdict}")
+    if args.rtf_check > 0:
+        wall, _steps = run_evclock(100.0, args.rtf_check, rtf=1.0)
+        achieved = args.rtf_check / wall
+        ok = abs(achieved - 1.0) <= 0.01
+        print(
+            f"rtf=1 for {args.rtf_check:g} simulated s: {wall:.3f} s of wall time, achieved "
+            f"rtf {achieved:.4f} (target within 1%): {'PASS' if ok else 'MISS'}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
