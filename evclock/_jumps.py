@@ -31,7 +31,8 @@ class JumpThreshold:
 
     ``min_forward``: forward jumps at least this large (None: never called for forward jumps).
     ``min_backward``: backward jumps at least this large in magnitude (None: never).
-    Defaults: every backward jump, and no forward jump.
+    Defaults: every backward jump, and no forward jump - so ``JumpThreshold(min_forward=d)``
+    still reports every backward jump; pass ``min_backward=None`` to hear forward jumps only.
     """
 
     min_forward: Duration | None = None

@@ -147,10 +147,10 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         self._stall_timeout = _check_stall_timeout(stall_timeout)
         check_rtf(rtf)
         check_max_lag(max_lag)
+        self._now_ns: int = source.now_ns
+        source.attach(self)  # may refuse (a source drives one loop): before the selector too
         super().__init__(selector)
         self._source = source
-        self._now_ns: int = source.now_ns
-        source.attach(self)
         self._seq = itertools.count().__next__
         # Registered file descriptors, read on every iteration: the selector's own dict when
         # it exposes one (all stdlib selectors do), else its public mapping view. The

@@ -182,8 +182,10 @@ class Pacer:
                         f"(strict limit {self.max_lag:g} s); lower the rtf, lighten the "
                         "controllers or pass strict=False to let it run as fast as it can"
                     )
-                # Re-anchor: never burst to catch up on lost time.
-                self._anchor = (wall, self._now_ns())
+                # Re-anchor on now: never burst to catch up on lost time.
+                now_ns = self._now_ns()
+                self._anchor = (wall, now_ns)
+                due = wall + (next_ns - now_ns) / 1e9 / self._rtf
             while (delay := due - self._wall()) > 0:
                 if self._wait(delay):
                     return False

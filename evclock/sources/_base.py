@@ -55,8 +55,12 @@ class TimeSource(abc.ABC):
 
         Before every increment to a time ``t`` call ``gate(t)`` (unless ``gate`` is None); if
         it returns False, stop without moving. Stop as well once a task became ready (a
-        step hook woke one). The returned time may be before ``target_ns`` (the gate said no, or a
-        step hook woke a task) or after it (steps quantise time up to a step boundary).
+        step hook woke one). A source that moves in several increments within one call must
+        publish each new time to the loop (``loop._now_ns = t``) before the next ``gate``
+        call or hook: pacing, ``step_until`` and the clock read the loop's time.
+
+        The returned time may be before ``target_ns`` (the gate said no, or a step hook woke
+        a task) or after it (steps quantise time up to a step boundary).
         """
 
     def describe(self) -> str:

@@ -158,7 +158,10 @@ class PyBulletTimeSource(TimeSource):
     **Quantisation.** Sleeps are quantised *up* to step boundaries: a task sleeping until
     ``t`` wakes at the end of the first step whose time is ``>= t`` (with ``dt = 1/240`` s, a
     ``sleep(0.001)`` lasts one step, 4.1666 ms). Rates whose period is a whole number of steps
-    (20 Hz, 60 Hz, 240 Hz at ``dt = 1/240``) tick exactly on their deadlines.
+    (20 Hz, 60 Hz, 240 Hz at ``dt = 1/240``) tick exactly on their deadlines. A float
+    duration of whole steps may round one nanosecond past a step (``1/240`` s is 4166667 ns,
+    one step 4166666.67 ns) and then lasts one step more: wait whole steps with
+    :meth:`sleep_steps`.
 
     **Free running.** With nothing scheduled, physics keeps stepping (``free_running``): a
     task may wait on a step hook or :meth:`wait_until`.

@@ -32,9 +32,11 @@ class VirtualTimeSource(TimeSource):
         return self._now if loop is None else loop.now_ns
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
-        if target_ns is not None and target_ns > self._now and (gate is None or gate(target_ns)):
+        now = self.now_ns  # the loop may have moved time itself since (discrete_event)
+        if target_ns is not None and target_ns > now and (gate is None or gate(target_ns)):
             self._now = target_ns
-        return self._now
+            return target_ns
+        return now
 
     def set_time(self, new_ns: int) -> None:
         """Move time to ``new_ns`` (backwards or forwards) as a jump, like a simulator reset.
