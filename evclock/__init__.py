@@ -6,6 +6,8 @@ same controller code runs unchanged on wall time on the real robot.
 """
 
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
+from ._config import ENV_USE_SIM_TIME
+from ._driver import SimDriver, SimDriverError
 from ._errors import (
     ClockJumped,
     ClockMismatchError,
@@ -25,7 +27,7 @@ from ._errors import (
 from ._jumps import JumpHandle, JumpThreshold, TimeJump
 from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
-from ._runner import ENV_USE_SIM_TIME, loop_factory, resolve_use_sim_time, run
+from ._runner import loop_factory, resolve_use_sim_time, run
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
 
@@ -58,6 +60,8 @@ __all__ = [
     "PyBulletTimeSource",
     "Rate",
     "SimClock",
+    "SimDriver",
+    "SimDriverError",
     "SimEventLoop",
     "SimTimeLimitError",
     "StallError",

@@ -310,7 +310,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 self._fire(batch)
             # Keep going without returning to run_forever() only in the plain case of
             # tasks sleeping in turn (the common case in simulation, and the hot path).
-            if ready or self._stopping or not sched or len(io_map) > 1:
+            if ready or self._stopping or not sched:
                 return
 
     def _run_handle_debug(self, handle: asyncio.Handle) -> None:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import functools
-import os
 from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 from ._clock import WallClock, attach_clock
+from ._config import ENV_USE_SIM_TIME, env_use_sim_time
 from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
 from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
 from ._pacing import DEFAULT_MAX_LAG
@@ -16,25 +16,6 @@ from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanosecond
 from .sources import TimeSource, VirtualTimeSource
 
 _T = TypeVar("_T")
-
-ENV_USE_SIM_TIME = "EVCLOCK_USE_SIM_TIME"
-_TRUE = ("1", "true", "yes", "on")
-_FALSE = ("0", "false", "no", "off")
-
-
-def env_use_sim_time() -> bool | None:
-    """The ``EVCLOCK_USE_SIM_TIME`` setting: True, False, or None when unset."""
-    raw = os.environ.get(ENV_USE_SIM_TIME)
-    if raw is None or not raw.strip():
-        return None
-    value = raw.strip().lower()
-    if value in _TRUE:
-        return True
-    if value in _FALSE:
-        return False
-    raise InvalidArgumentError(
-        f"{ENV_USE_SIM_TIME} must be one of {'/'.join(_TRUE)} or {'/'.join(_FALSE)}, got {raw!r}"
-    )
 
 
 def resolve_use_sim_time(use_sim_time: bool | None = None, *, default: bool = True) -> bool:
