@@ -7,7 +7,7 @@ same controller code runs unchanged on wall time on the real robot.
 
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
 from ._config import ENV_USE_SIM_TIME
-from ._driver import SimDriver, SimDriverError
+from ._driver import SimDriver
 from ._errors import (
     ClockJumped,
     ClockMismatchError,
@@ -21,6 +21,7 @@ from ._errors import (
     NotRunningError,
     PacingError,
     PhysicsError,
+    SimDriverError,
     SimTimeLimitError,
     StallError,
 )

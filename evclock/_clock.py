@@ -9,8 +9,9 @@ import time
 import weakref
 from collections.abc import Awaitable
 from heapq import heappush
-from typing import TYPE_CHECKING
 
+from . import _precise
+from ._config import env_use_sim_time
 from ._errors import (
     ClockMismatchError,
     InvalidArgumentError,
@@ -19,11 +20,9 @@ from ._errors import (
     NotRunningError,
 )
 from ._jumps import JumpCallback, JumpHandle, JumpThreshold
+from ._loop import SimEventLoop
 from ._rate import Policy, Rate, Timer, TimerCallback
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds
-
-if TYPE_CHECKING:
-    from ._loop import SimEventLoop
 
 _Future = asyncio.futures.Future
 _NEGATIVE_HINT = "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
@@ -56,8 +55,10 @@ class Clock(abc.ABC):
     clock_type: ClockType
 
     def __init__(self) -> None:
-        self._rates: list[Rate] = []
-        self._timers: list[Timer] = []
+        # Latest rate loop / timer of each name: a controller restarted under the same name
+        # replaces its predecessor, so a long-running app does not accumulate them.
+        self._rates: dict[str, Rate] = {}
+        self._timers: dict[str, Timer] = {}
 
     @abc.abstractmethod
     def now_ns(self) -> int:
@@ -95,7 +96,8 @@ class Clock(abc.ABC):
     def rate(self, hz: float, *, policy: Policy = "skip", name: str | None = None) -> Rate:
         """A drift-free rate loop: ``async for tick in clock.rate(100): ...``; see :class:`Rate`."""
         rate = Rate(self, hz, policy, name)
-        self._rates.append(rate)
+        self._rates.pop(rate.name, None)
+        self._rates[rate.name] = rate
         return rate
 
     def timer(
@@ -108,18 +110,22 @@ class Clock(abc.ABC):
     ) -> Timer:
         """Start calling ``callback`` every ``period`` (or once after it); see :class:`Timer`."""
         timer = Timer(self, period, callback, oneshot=oneshot, name=name)
-        self._timers.append(timer)
+        self._timers.pop(timer.name, None)
+        self._timers[timer.name] = timer
         return timer
 
     @property
     def rates(self) -> tuple[Rate, ...]:
-        """Every rate loop created on this clock, in creation order (for reports)."""
-        return tuple(self._rates)
+        """The latest rate loop of each name created on this clock, oldest first (for reports).
+
+        A new rate with the name of an earlier one replaces it: give loops distinct names.
+        """
+        return tuple(self._rates.values())
 
     @property
     def timers(self) -> tuple[Timer, ...]:
-        """Every timer created on this clock, in creation order."""
-        return tuple(self._timers)
+        """The latest timer of each name created on this clock, oldest first."""
+        return tuple(self._timers.values())
 
     def on_jump(
         self,
@@ -178,7 +184,13 @@ class SimClock(Clock):
                 ns = _sleep_ns(duration)
         else:
             ns = _sleep_ns(duration)
-        return self._sleep_until_ns(self._loop._now_ns + ns)
+        # Same as _sleep_until_ns(now + ns), inlined: this is every controller's hot path.
+        loop = self._loop
+        if loop._closed:
+            loop._check_closed()
+        fut: asyncio.Future[None] = _Future(loop=loop)
+        heappush(loop._scheduled, (loop._now_ns + ns, loop._seq(), 0, fut))
+        return fut
 
     def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
         loop = self._loop
@@ -199,28 +211,106 @@ class SimClock(Clock):
 class WallClock(Clock):
     """Wall time: ``STEADY`` (monotonic, default) or ``SYSTEM`` (calendar time).
 
-    The same API as :class:`SimClock`, for the real robot; works on any asyncio loop.
+    The same API as :class:`SimClock`, for the real robot; works on any asyncio loop
+    (the default loop, uvloop, ...).
+
+    Waits are precise by default (``precise=True``): the stock loop rounds its selector
+    timeout up to whole milliseconds, so a plain ``asyncio.sleep`` based 1 kHz loop is late
+    by about half a period. On Linux a precise wait is woken by a ``timerfd`` armed at the
+    exact deadline and watched by the loop (``loop.add_reader``): no millisecond rounding,
+    no timer slack, no CPU cost. Long waits first sleep on the loop's own timer until 5 ms
+    before the deadline. Where a timerfd is not available (other systems, loops without
+    ``add_reader``) the loop's timer is used, with its granularity. A precise wait never
+    returns before the clock reads the deadline. See ``benchmarks/wall_rate_1khz.py``.
+
+    Args:
+        clock_type: ``STEADY`` or ``SYSTEM``. Relative sleeps (:meth:`sleep`) are always
+            measured on the monotonic clock; deadlines (``sleep_until``, rates, timers) on
+            this clock.
+        precise: False restores plain ``asyncio.sleep`` waits (millisecond granularity).
+        spin_margin: seconds or a :class:`Duration` (default 0): wake this much before the
+            deadline and wait the rest by yielding to the loop (``asyncio.sleep(0)``) until
+            the clock reads it. Absorbs the kernel's wake-up latency on a busy or
+            virtualised machine, at a CPU cost of about ``spin_margin`` per wait (5 % of a
+            core at 1 kHz with 50 us); other tasks keep running while a waiter spins.
+            Without a timerfd, a margin above the loop's granularity (e.g. 1.2 ms on the
+            default Linux loop) makes waits precise at the cost of spinning.
+        timer_slack: seconds or a :class:`Duration`, or None (default: leave it alone):
+            on Linux, lower the loop thread's timer slack (``prctl(PR_SET_TIMERSLACK)``,
+            50 us by default) to this while precise waits are pending, restoring it when
+            the last one ends. Only the fallback path benefits (timerfd timers have no
+            slack). A no-op where prctl is unavailable.
     """
 
-    def __init__(self, clock_type: ClockType = STEADY) -> None:
+    def __init__(
+        self,
+        clock_type: ClockType = STEADY,
+        *,
+        precise: bool = True,
+        spin_margin: float | Duration = _precise.DEFAULT_SPIN_MARGIN_NS / 1e9,
+        timer_slack: float | Duration | None = None,
+    ) -> None:
         if clock_type not in (STEADY, SYSTEM):
             raise InvalidArgumentError(
                 f"a wall clock is STEADY or SYSTEM, got {clock_type!r}; sim time comes from "
                 "a simulation loop (evclock.run)"
             )
+        if not isinstance(precise, bool):
+            raise InvalidTypeError(f"precise must be True or False, got {type(precise).__name__}")
+        margin_ns = to_nanoseconds(spin_margin, "spin_margin")
+        if margin_ns < 0:
+            raise InvalidArgumentError(f"spin_margin must not be negative, got {spin_margin!r}")
+        slack: _precise.TimerSlack | None = None
+        if timer_slack is not None:
+            slack_ns = to_nanoseconds(timer_slack, "timer_slack")
+            if slack_ns <= 0:
+                raise InvalidArgumentError(f"timer_slack must be positive, got {timer_slack!r}")
+            slack = _precise.TimerSlack(slack_ns)
         super().__init__()
         self.clock_type = clock_type
         self._read = time.monotonic_ns if clock_type is STEADY else time.time_ns
+        self._clockid = (
+            _precise.CLOCK_MONOTONIC if clock_type is STEADY else _precise.CLOCK_REALTIME
+        )
+        self._precise = precise
+        self._spin_margin_ns = margin_ns
+        self._slack = slack
+
+    @property
+    def precise(self) -> bool:
+        """Whether waits are precise (see the class docstring)."""
+        return self._precise
+
+    @property
+    def spin_margin(self) -> Duration:
+        """How long before a deadline a precise wait starts yielding instead of sleeping."""
+        return Duration._from_ns(self._spin_margin_ns)
 
     def now_ns(self) -> int:
         return self._read()
 
     async def sleep(self, duration: float | Duration) -> None:
-        await asyncio.sleep(_sleep_ns(duration) / 1e9)
+        ns = _sleep_ns(duration)
+        if not self._precise:
+            await asyncio.sleep(ns / 1e9)
+            return
+        # A relative sleep is measured on the monotonic clock, even on a SYSTEM clock.
+        await _precise.sleep_until_ns(
+            time.monotonic_ns() + ns,
+            time.monotonic_ns,
+            _precise.CLOCK_MONOTONIC,
+            self._spin_margin_ns,
+            self._slack,
+        )
 
     async def _sleep_until_ns(self, when_ns: int) -> None:
-        delay = when_ns - self._read()
-        await asyncio.sleep(delay / 1e9 if delay > 0 else 0)
+        if not self._precise:
+            delay = when_ns - self._read()
+            await asyncio.sleep(delay / 1e9 if delay > 0 else 0)
+            return
+        await _precise.sleep_until_ns(
+            when_ns, self._read, self._clockid, self._spin_margin_ns, self._slack
+        )
 
     def __repr__(self) -> str:
         return f"<WallClock {self.clock_type.value}>"
@@ -257,9 +347,6 @@ def clock() -> Clock:
     a simulation while ``EVCLOCK_USE_SIM_TIME`` asks for sim time, it raises
     :class:`NoSimulationError` instead of silently running on wall time.
     """
-    from ._loop import SimEventLoop
-    from ._runner import env_use_sim_time
-
     loop = _running_loop("evclock.clock()")
     if isinstance(loop, SimEventLoop):
         return loop.clock
@@ -279,8 +366,6 @@ def clock() -> Clock:
 
 def sim_clock() -> SimClock:
     """The sim clock of the running loop; :class:`NoSimulationError` if there is none."""
-    from ._loop import SimEventLoop
-
     loop = _running_loop_or_none()
     if isinstance(loop, SimEventLoop):
         return loop.clock

@@ -77,6 +77,10 @@ class ClockJumped(EvClockError):
         self.jump = jump
 
 
+class SimDriverError(EvClockError, RuntimeError):
+    """A :class:`~evclock.SimDriver` was started twice, or on a loop that has a sim clock."""
+
+
 class PhysicsError(EvClockError, RuntimeError):
     """The physics engine cannot be used: a disconnected client, a bad time step."""
 

@@ -184,6 +184,9 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         """Sim time in integer nanoseconds."""
         return self._now_ns
 
+    def _runs_on(self, loop: asyncio.AbstractEventLoop) -> bool:
+        return loop is self
+
     @property
     def source(self) -> TimeSource:
         """The time source that drives this loop."""

@@ -146,11 +146,13 @@ class Pacer:
         if not self.paused:
             raise PacingError(self._not_paused("step()"))
         self._step_budget += count
+        self._anchor = None  # pace the steps from the request, not from before the pause
 
     def run_until(self, sim_ns: int) -> None:
         if not self.paused:
             raise PacingError(self._not_paused("step_until()"))
         self._run_until_ns = sim_ns
+        self._anchor = None
 
     def _not_paused(self, what: str) -> str:
         mode = "as fast as possible" if self._rtf is None else f"at rtf={self._rtf:g}"
@@ -160,9 +162,10 @@ class Pacer:
 
     def allow(self, next_ns: int) -> bool:
         """May sim time move to ``next_ns`` now? Waits (serving I/O) as pacing requires."""
+        stepping = False
         while self.paused:
             if self._step_budget > 0:
-                self._step_budget -= 1
+                stepping = True  # spent only once the pacing wait below is over
                 break
             if self._run_until_ns is not None and self._now_ns() < self._run_until_ns:
                 break
@@ -189,4 +192,6 @@ class Pacer:
             while (delay := due - self._wall()) > 0:
                 if self._wait(delay):
                     return False
+        if stepping:
+            self._step_budget -= 1
         return True

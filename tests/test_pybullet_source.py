@@ -843,8 +843,9 @@ def test_wait_until_bad_input(client: int) -> None:
 def test_wait_until_on_another_loop_is_refused(client: int) -> None:
     source = PyBulletTimeSource(client)
     message = (
-        "{} must be awaited in a task of the SimEventLoop this PyBulletTimeSource drives "
-        "(evclock.run(main(), source=source))"
+        "{} must be awaited in a task on the sim time this PyBulletTimeSource drives: the "
+        "SimEventLoop of evclock.run(main(), source=source), or the loop of an "
+        "evclock.SimDriver(source)"
     )
     with raises_exactly(NotRunningError, message.format("wait_until()")):
         asyncio.run(source.wait_until(lambda: True))

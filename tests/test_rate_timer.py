@@ -300,3 +300,19 @@ def test_rates_and_timers_work_on_wall_time() -> None:
     assert indices[0] == 0
     assert indices[-1] == 3
     assert hits >= 1
+
+
+def test_registry_keeps_the_latest_loop_of_each_name() -> None:
+    async def main() -> evclock.Clock:
+        clock = evclock.clock()
+        for episode in range(3):
+            rate = clock.rate(10, name="control")
+            async for tick in rate:
+                if tick.index == episode:
+                    break
+        clock.rate(5, name="planner")
+        return clock
+
+    clock = evclock.run(main())
+    assert [r.name for r in clock.rates] == ["control", "planner"]
+    assert clock.rates[0].stats.ticks == 3  # the last episode's loop

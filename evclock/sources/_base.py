@@ -3,16 +3,52 @@
 from __future__ import annotations
 
 import abc
-from collections.abc import Callable
-from typing import TYPE_CHECKING
+import asyncio
+from collections.abc import Callable, Sized
+from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
-    from .._loop import SimEventLoop
+    from .._clock import SimClock
+    from .._jumps import TimeJump
 
 #: ``gate(next_ns)`` is asked before each increment of time when pacing is active (None
 #: otherwise: advance freely); False means "not now": the loop has something to run at the
 #: current time (I/O arrived, a thread called back), so the source must stop and return.
 Gate = Callable[[int], bool] | None
+
+
+class SourceHost(Protocol):
+    """What a time source needs from whatever drives it: a :class:`~evclock.SimEventLoop`,
+    or a :class:`~evclock.SimDriver` on a loop evclock does not own."""
+
+    #: Sim time as the host publishes it; a source stepping several increments per advance
+    #: writes each new time here before its hooks and the next gate call.
+    _now_ns: int
+
+    @property
+    def now_ns(self) -> int: ...
+
+    @property
+    def clock(self) -> SimClock:
+        """The sim clock tasks on this host read."""
+        ...
+
+    @property
+    def _ready(self) -> Sized:
+        """Non-empty (truthy) once a task became runnable: a stepping source stops then."""
+        ...
+
+    def _jump_time(
+        self, before_ns: int, after_ns: int, assign: Callable[[int], None]
+    ) -> TimeJump: ...
+
+    def _runs_on(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Whether tasks of ``loop`` are on this host's sim time."""
+        ...
+
+    def is_closed(self) -> bool: ...
+
+    def call_exception_handler(self, context: dict[str, Any]) -> None: ...
 
 
 class TimeSource(abc.ABC):
@@ -31,10 +67,10 @@ class TimeSource(abc.ABC):
     #: the loop then moves time itself and reads it back through ``loop.now_ns``.
     discrete_event: bool = False
 
-    _loop: SimEventLoop | None = None
+    _loop: SourceHost | None = None
 
-    def attach(self, loop: SimEventLoop) -> None:
-        """Called once by the loop that this source will drive."""
+    def attach(self, loop: SourceHost) -> None:
+        """Called once by the loop (or driver) that this source will drive."""
         if self._loop is not None and self._loop is not loop:
             from .._errors import EvClockError
 
@@ -43,6 +79,11 @@ class TimeSource(abc.ABC):
                 "create one time source per loop"
             )
         self._loop = loop
+
+    def detach(self) -> None:
+        """Called by a host that stops driving this source (a stopped SimDriver); the
+        source keeps its time and may be attached to a new host."""
+        self._loop = None
 
     @property
     @abc.abstractmethod

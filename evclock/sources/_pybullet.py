@@ -559,7 +559,7 @@ class PyBulletTimeSource(TimeSource):
         """
         when = self.time_of_step(count)
         loop = asyncio.get_running_loop()
-        if loop is not self._loop:
+        if self._loop is None or not self._loop._runs_on(loop):
             raise NotRunningError(self._wrong_loop("sleep_steps()"))
         if count < 1:
             raise InvalidArgumentError(f"sleep_steps() count must be >= 1, got {count}")
@@ -568,8 +568,9 @@ class PyBulletTimeSource(TimeSource):
     @staticmethod
     def _wrong_loop(what: str) -> str:
         return (
-            f"{what} must be awaited in a task of the SimEventLoop this PyBulletTimeSource "
-            "drives (evclock.run(main(), source=source))"
+            f"{what} must be awaited in a task on the sim time this PyBulletTimeSource drives: "
+            "the SimEventLoop of evclock.run(main(), source=source), or the loop of an "
+            "evclock.SimDriver(source)"
         )
 
     async def wait_until(
@@ -600,7 +601,7 @@ class PyBulletTimeSource(TimeSource):
                 )
             limit = Duration._from_ns(timeout_ns)
         loop = asyncio.get_running_loop()
-        if loop is not self._loop:
+        if self._loop is None or not self._loop._runs_on(loop):
             raise NotRunningError(self._wrong_loop("wait_until()"))
         if predicate():
             return Time._from_ns(self._now, SIM)

@@ -53,6 +53,12 @@ class VirtualTimeSource(TimeSource):
             return
         loop._jump_time(loop.now_ns, new_ns, self._assign)
 
+    def detach(self) -> None:
+        loop = self._loop
+        if loop is not None:
+            self._now = loop.now_ns  # the host moved time itself: keep where it got to
+        super().detach()
+
     def _assign(self, new_ns: int) -> None:
         self._now = new_ns
 

@@ -1,0 +1,884 @@
+"""Sim time on an event loop evclock does not own: a driver task steps and paces the simulation.
+
+:class:`SimEventLoop` *is* the loop, so it sees everything and advances sim time only when
+every task waits. An application whose loop is not ours (plain asyncio, uvloop, an ASGI
+server, a notebook kernel that is already running) uses :class:`SimDriver` instead: one task
+on that loop that owns sim time. evclock's own waits (``clock.sleep``, ``sleep_until``,
+rates, timers) follow the driver's sim time; the loop's own timers - plain
+``asyncio.sleep``, ``asyncio.timeout``, ``call_later`` - stay on wall time.
+
+The driver repeats one cycle:
+
+1. wake every ``clock.sleep`` due at the current sim time ``t`` (FIFO among equal deadlines);
+2. *settle*: yield to the loop until the woken work is done at ``t`` (see below);
+3. wake the ``run_until()`` callers due at ``t`` and settle again;
+4. advance: jump to the next deadline (virtual time) or take physics steps (PyBullet),
+   paced by :class:`~evclock._pacing.Pacer`; a pacing wait is an ``asyncio`` wait on the
+   host loop, so I/O keeps flowing.
+
+A time source drives the driver as it drives a SimEventLoop: the driver offers the part of
+the loop interface sources use - ``now_ns``/``_now_ns``, ``_ready`` (truthy once a task became
+runnable), ``_jump_time(before, after, assign)``, ``is_closed()``, ``call_exception_handler()``
+and ``clock``.
+
+Settling is how lockstep is approximated on a loop we cannot drive. On loops built on
+``asyncio.BaseEventLoop`` the driver reads the loop's ready queue: it is settled when nothing
+but itself is runnable (exact). On other loops (uvloop) it inspects the tasks instead: settled
+when every other task is done or suspended on a future that is still pending, three checks in
+a row (a chain of up to two plain callbacks - ``gather``, ``wait_for`` - is not visible in
+tasks, so quiet must last). Either way at most ``max_settle_yields`` yields are spent; then
+time advances anyway (counted in :attr:`SimDriver.lockstep_overruns`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import heapq
+import itertools
+import math
+import time
+from collections.abc import Callable, Iterator
+from types import TracebackType
+from typing import TYPE_CHECKING, Any, Final
+
+from . import _clock
+from ._clock import Clock, SimClock, _sleep_ns, attach_clock, detach_clock
+from ._errors import (
+    ClockJumped,
+    ClockMismatchError,
+    InvalidArgumentError,
+    InvalidTypeError,
+    LoopClosedError,
+    NotRunningError,
+    SimDriverError,
+)
+from ._jumps import JumpHandle, TimeJump
+from ._loop import SimEventLoop
+from ._pacing import DEFAULT_MAX_LAG, Pacer, check_max_lag, check_rtf
+from ._time import SIM, Duration, Time, to_nonnegative_nanoseconds
+from .sources import TimeSource, VirtualTimeSource
+
+if TYPE_CHECKING:
+    _Entry = tuple[int, int, asyncio.Future[None] | None]
+
+#: Default bound of loop iterations the driver yields, after waking the tasks due at one sim
+#: time, for that work to settle before it advances sim time anyway.
+DEFAULT_MAX_SETTLE_YIELDS: Final = 100
+#: Consecutive quiet checks needed when the loop's ready queue cannot be read (uvloop).
+_QUIET_CHECKS_BY_TASKS: Final = 3
+_NEW, _RUNNING, _STOPPED = "new", "running", "stopped"
+_UNKNOWN: Final[Any] = object()
+
+
+class SimDriverClock(SimClock):
+    """The sim clock of a :class:`SimDriver`: what :func:`evclock.clock` and
+    :func:`evclock.sim_clock` return on the loop the driver runs on.
+
+    A :class:`SimClock` (``clock_type`` is ``SIM``) with the same API; its waits must be
+    awaited on the driver's loop while the driver runs.
+    """
+
+    clock_type = SIM
+
+    def __init__(self, driver: SimDriver) -> None:
+        Clock.__init__(self)
+        self._driver = driver
+
+    @property
+    def driver(self) -> SimDriver:
+        """The driver that owns this clock (pause, step, rtf)."""
+        return self._driver
+
+    @property
+    def loop(self) -> SimEventLoop:
+        """Not available: this clock is driven by a :class:`SimDriver`, not a SimEventLoop."""
+        raise SimDriverError(
+            "this sim clock belongs to a SimDriver on a loop evclock does not own, not to a "
+            "SimEventLoop; use clock.driver for pause(), step() and rtf"
+        )
+
+    def now_ns(self) -> int:
+        return self._driver._now_ns
+
+    def now(self) -> Time:
+        return Time._from_ns(self._driver._now_ns, SIM)
+
+    def sleep(self, duration: float | Duration) -> asyncio.Future[None]:
+        if type(duration) is float and 0.0 <= duration < 1e9:
+            ns = round(duration * 1e9)
+        elif type(duration) is Duration and duration._ns >= 0:
+            ns = duration._ns
+        else:
+            ns = _sleep_ns(duration)
+        driver = self._driver
+        return driver._push_sleep(driver._now_ns + ns)
+
+    def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
+        driver = self._driver
+        return driver._push_sleep(max(when_ns, driver._now_ns))
+
+    def _jump_registry(self) -> list[JumpHandle]:
+        return self._driver._jump_handlers
+
+    def __repr__(self) -> str:
+        return f"<SimDriverClock now={self.now()} source={self._driver.source.describe()}>"
+
+
+class _WakeProbe:
+    """True once a task became runnable during an advance (for loops without a ready queue).
+
+    Sources check ``loop._ready`` between physics steps so that a step hook waking a task
+    stops the advance. Without a readable ready queue, the probe snapshots the futures the
+    other tasks wait on (at its first check) and reports when one of them is done.
+    """
+
+    __slots__ = ("_driver", "_futures")
+
+    def __init__(self, driver: SimDriver) -> None:
+        self._driver = driver
+        self._futures: list[asyncio.Future[Any]] | None = None
+
+    def arm(self) -> None:
+        self._futures = None
+
+    def __bool__(self) -> bool:
+        futures = self._futures
+        if futures is None:
+            futures = self._futures = []
+            loop = self._driver._loop
+            assert loop is not None
+            me = asyncio.current_task(loop)
+            for task in asyncio.all_tasks(loop):
+                if task is me:
+                    continue
+                waiter = getattr(task, "_fut_waiter", _UNKNOWN)
+                if waiter is None:
+                    return True
+                if waiter is not _UNKNOWN:
+                    futures.append(waiter)
+        return any(f.done() for f in futures)
+
+
+def _resolve(fut: asyncio.Future[None]) -> None:
+    if not fut.done():
+        fut.set_result(None)
+
+
+class SimDriver:
+    """Drives simulation time from a task on an event loop evclock does not own.
+
+    For applications whose loop is not a :class:`SimEventLoop` - plain asyncio, uvloop, an
+    ASGI server's loop, a notebook kernel's loop that is already running::
+
+        async with evclock.SimDriver(rtf=None) as sim:
+            task = asyncio.create_task(controller())   # evclock.clock() is sim.clock here
+            await sim.run_until(5.0)
+
+    **What follows sim time.** ``sim.clock`` - also what :func:`evclock.clock` and
+    :func:`evclock.sim_clock` return on this loop while the driver runs - and everything built
+    on it: ``clock.sleep``, ``sleep_until``, ``clock.rate``, ``clock.timer``. **What does not:**
+    the loop's own timers - plain ``asyncio.sleep``, ``asyncio.timeout``, ``wait_for``,
+    ``call_later`` and anyio's sleeps - stay on *wall* time (evclock does not own this loop's
+    clock). With ``rtf=None`` a plain ``await asyncio.sleep(0.05)`` lets as much sim time
+    pass as the driver can compute in 50 ms; use ``clock.sleep`` in controllers.
+
+    **How it advances.** A cycle: wake the ``clock.sleep`` waits due at the current sim time
+    ``t`` (in deadline order, FIFO among equal deadlines), let the woken work settle, then
+    advance. Virtual time jumps exactly to the next deadline; a PyBullet source steps the
+    physics in whole steps toward it (sleeps quantise up to step boundaries) and keeps
+    stepping, one step per cycle, when nothing is scheduled. Virtual time with nothing
+    scheduled stands still - no deadlock error, since I/O may still come - until a task
+    sleeps on sim time. Pacing uses the same :class:`~evclock._pacing.Pacer` as
+    :class:`SimEventLoop` (``rtf``, ``max_lag``, ``strict``; ``wall`` is the clock it reads);
+    its waits are ``asyncio`` waits on the host loop, so I/O keeps flowing, and a sleep
+    registered meanwhile for an earlier time cuts the wait short. Each cycle yields to the
+    loop at least once, also with ``rtf=None``, so the application stays responsive.
+
+    **Lockstep, approximated.** After waking the tasks due at ``t`` the driver yields
+    (``await asyncio.sleep(0)``) until that work settled, re-firing sleeps due at ``t``
+    (``clock.sleep(0)``) as it goes: on loops derived from ``asyncio.BaseEventLoop`` until the
+    loop's ready queue is empty - nothing but the driver is runnable, which includes tasks
+    the woken ones created, queues and events they set, and callbacks; on other loops
+    (uvloop) until, three checks in a row, every other task is done or suspended on a still
+    pending future. Work that waits on something outside (I/O, wall-time sleeps, threads)
+    counts as settled: sim time does not wait for it - wrap such work in
+    :meth:`hold_time` to make it. After ``max_settle_yields`` yields time advances anyway
+    (a task spinning on ``asyncio.sleep(0)`` would otherwise stop the simulation); each such
+    advance is counted in :attr:`lockstep_overruns`. Unrelated busy work on the loop (a
+    server handling requests) delays advances the same way.
+
+    **Jumps.** A source that jumps (``VirtualTimeSource.set_time``, a PyBullet reset or
+    restored state) runs the jump handlers, wakes every pending ``clock.sleep`` with
+    :class:`ClockJumped` and re-anchors rates, timers and pacing, as on a SimEventLoop.
+
+    **run_until.** ``await sim.run_until(t)`` returns once sim time reached ``t`` *and* the
+    work due at ``t`` has settled, so the caller sees the state at ``t``; the driver goes
+    on afterwards. On a paused driver it advances to ``t`` (exactly on virtual time) and
+    stays paused: ``SimDriver(paused=True)`` plus ``run_until`` is the notebook workflow.
+
+    **Life cycle.** A driver runs once: ``async with`` (or :meth:`start`, or the first
+    :meth:`run_until`) attaches the source and the clock to the running loop; :meth:`stop`
+    (or leaving the ``async with``) ends the driver task, cancels the sim-time waits still
+    pending and those started while it stops (their tasks get ``CancelledError``;
+    :meth:`run_until` raises :class:`LoopClosedError`), lets those tasks finish, and
+    restores the loop's previous clock; later waits on the clock raise
+    :class:`LoopClosedError`. The source is detached, not closed: a new
+    ``SimDriver(source)`` can go on from the same time (close a PyBullet source you connected
+    yourself). If the driver fails (a :class:`LagError` in strict mode, a
+    :class:`PhysicsError`), pending waits and :meth:`run_until` raise that error and
+    :meth:`stop` re-raises it unless :meth:`run_until` already did. Controls
+    (:meth:`pause`, :meth:`step`, ...) and waits must be used from the loop's thread.
+
+    :param source: what owns sim time; default a :class:`VirtualTimeSource` starting at 0.
+    :param rtf: real-time factor: None = as fast as possible, 1.0 = real time, k = k x.
+    :param max_lag: wall seconds a paced run may fall behind before re-anchoring (or raising).
+    :param strict: raise :class:`LagError` when lagging more than ``max_lag`` behind ``rtf``.
+    :param paused: start paused (see :meth:`resume`, :meth:`step`, :meth:`run_until`).
+    :param max_settle_yields: bound of loop iterations spent letting the work of one sim time
+        settle before advancing anyway.
+    :param wall: the wall clock pacing reads, in seconds (default ``time.perf_counter``).
+    """
+
+    def __init__(
+        self,
+        source: TimeSource | None = None,
+        *,
+        rtf: float | None = 1.0,
+        max_lag: float = DEFAULT_MAX_LAG,
+        strict: bool = False,
+        paused: bool = False,
+        max_settle_yields: int = DEFAULT_MAX_SETTLE_YIELDS,
+        wall: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        if source is None:
+            source = VirtualTimeSource()
+        elif not isinstance(source, TimeSource):
+            raise InvalidTypeError(
+                f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
+                f"got {type(source).__name__}"
+            )
+        check_rtf(rtf)
+        check_max_lag(max_lag)
+        if isinstance(max_settle_yields, bool) or not isinstance(max_settle_yields, int):
+            raise InvalidTypeError(
+                f"max_settle_yields must be an int, got {type(max_settle_yields).__name__}"
+            )
+        if max_settle_yields < 1:
+            raise InvalidArgumentError(f"max_settle_yields must be >= 1, got {max_settle_yields}")
+        if not callable(wall):
+            raise InvalidTypeError(
+                f"wall must be a callable returning seconds, got {type(wall).__name__}"
+            )
+        self._source = source
+        self._now_ns: int = source.now_ns
+        self._pacer = Pacer(
+            self._pacer_wait, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
+        )
+        if paused:
+            self._pacer.pause()
+        self._max_settle_yields = max_settle_yields
+        self._heap: list[_Entry] = []
+        # run_until() waits: woken after the work due at their time has settled.
+        self._late: list[tuple[int, int, asyncio.Future[None]]] = []
+        self._compact_at = 64
+        self._seq = itertools.count().__next__
+        self._jump_handlers: list[JumpHandle] = []
+        self._clock = SimDriverClock(self)
+        self._state = _NEW
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._task: asyncio.Task[None] | None = None
+        self._stopping = False
+        self._poke_fut: asyncio.Future[None] | None = None
+        self._wait_target: float = math.inf
+        self._pace_waiting = False
+        self._pace_timeout: float | None = None
+        self._ready_queue: collections.deque[Any] | None = None
+        self._probe = _WakeProbe(self)
+        self._holds = 0
+        self._draining = False
+        self._step_until_ns: int | None = None
+        self._previous_clock: Clock | None = None
+        self._error: Exception | None = None
+        self._error_reported = False
+        self._lockstep_overruns = 0
+
+    # ------------------------------------------------------------ properties
+
+    @property
+    def clock(self) -> SimDriverClock:
+        """The sim clock (what :func:`evclock.clock` returns on the driver's loop)."""
+        return self._clock
+
+    @property
+    def source(self) -> TimeSource:
+        """The time source this driver advances."""
+        return self._source
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop | None:
+        """The event loop the driver runs (or ran) on; None before it started."""
+        return self._loop
+
+    @property
+    def now_ns(self) -> int:
+        """Sim time in integer nanoseconds."""
+        return self._now_ns
+
+    def _get_now_ns(self) -> int:
+        return self._now_ns
+
+    def now(self) -> Time:
+        """Current sim time."""
+        return Time._from_ns(self._now_ns, SIM)
+
+    @property
+    def running(self) -> bool:
+        """True between start and stop."""
+        return self._state is _RUNNING
+
+    @property
+    def lockstep_overruns(self) -> int:
+        """How many times sim time advanced before the work of the previous sim time had
+        settled (``max_settle_yields`` reached); 0 means every advance was in lockstep."""
+        return self._lockstep_overruns
+
+    @property
+    def rtf(self) -> float | None:
+        """Requested real-time factor (None: as fast as possible). Settable while running."""
+        return self._pacer.rtf
+
+    @rtf.setter
+    def rtf(self, value: float | None) -> None:
+        self._pacer.rtf = value
+        self._poke()
+
+    @property
+    def paused(self) -> bool:
+        """Whether sim time is paused (sleeps due at the current time still wake)."""
+        return self._pacer.paused
+
+    def achieved_rtf(self) -> float | None:
+        """Real-time factor achieved over the last couple of wall seconds (None: not yet known).
+
+        Each call records a sample: poll it periodically (a progress bar, a dashboard).
+        """
+        self._pacer.meter.sample(self._now_ns)
+        return self._pacer.meter.recent()
+
+    def __repr__(self) -> str:
+        rtf = "None" if self._pacer.rtf is None else f"{self._pacer.rtf:g}"
+        paused = " paused" if self._pacer.paused else ""
+        return (
+            f"<SimDriver {self._state}{paused} now={self.now()} rtf={rtf} "
+            f"source={self._source.describe()}>"
+        )
+
+    # ------------------------------------------------------------ life cycle
+
+    async def __aenter__(self) -> SimDriver:
+        self.start()
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self.stop()
+
+    def start(self) -> asyncio.Task[None]:
+        """Start the driver task on the running loop and attach the clock to that loop."""
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            raise NotRunningError(
+                "SimDriver.start() needs a running event loop; call it from a coroutine "
+                "(async with evclock.SimDriver() as sim: ...)"
+            ) from None
+        if self._state is _RUNNING:
+            raise SimDriverError(
+                "this SimDriver is already running; a driver is started once (by async with, "
+                "start() or run_until())"
+            )
+        if self._state is _STOPPED:
+            raise LoopClosedError(self._stopped_message())
+        if isinstance(loop, SimEventLoop):
+            raise SimDriverError(
+                "SimDriver drives sim time on loops evclock does not own, but this loop is a "
+                "SimEventLoop, whose time already is sim time; use evclock.clock() and the "
+                "loop's pause(), step() and rtf instead"
+            )
+        previous = _clock._attached.get(loop)
+        if isinstance(previous, SimDriverClock):
+            raise SimDriverError(
+                "another SimDriver is already running on this event loop; stop it first "
+                "(one sim clock per loop)"
+            )
+        source = self._source
+        now = source.now_ns
+        source.attach(self)  # a SimDriver is the source's host (SourceHost)
+        self._now_ns = now
+        self._loop = loop
+        ready = getattr(loop, "_ready", None)
+        self._ready_queue = ready if isinstance(ready, collections.deque) else None
+        self._previous_clock = previous
+        attach_clock(loop, self._clock)
+        self._state = _RUNNING
+        self._task = task = loop.create_task(self._run(), name="evclock-sim-driver")
+        task.add_done_callback(self._on_task_done)
+        return task
+
+    def _on_task_done(self, task: asyncio.Task[None]) -> None:
+        # A task cancelled before its first step never ran _run's cleanup: do it here.
+        if self._state is _RUNNING:
+            self._shutdown(None if task.cancelled() else task.exception())
+
+    async def stop(self) -> None:
+        """Stop the driver: end its task, cancel pending sim-time waits, restore the loop's clock.
+
+        Returns once the tasks whose waits were cancelled have finished (within
+        ``max_settle_yields`` loop iterations). Idempotent; re-raises the error the driver
+        failed with, unless :meth:`run_until` already raised it.
+        """
+        if self._state is _NEW:
+            self._state = _STOPPED
+            return
+        task = self._task
+        assert task is not None
+        if not task.done():
+            self._stopping = True
+            self._draining = True  # waits started while stopping are cancelled at once
+            self._poke()
+            try:
+                await asyncio.wait((task,))
+                await self._settle(stop_early=False)
+            finally:
+                self._draining = False
+        if not task.cancelled():
+            task.exception()  # retrieved here: the error is handled below
+        error = self._error
+        if error is not None and not self._error_reported:
+            self._error_reported = True
+            raise error
+
+    async def run_until(self, when: float | Time) -> None:
+        """Wait until sim time reaches ``when`` (seconds or a sim :class:`Time`); start if needed.
+
+        Returns once the work due at ``when`` has settled too (the controllers' ticks at
+        ``when`` have run), so the caller sees the state at ``when``. Other tasks keep
+        running meanwhile, and the driver keeps going afterwards unless paused. If the driver
+        is paused, it advances to ``when`` - exactly on virtual time, to the first step
+        boundary at or after it with physics - and stays paused there: the notebook
+        workflow, ``sim = SimDriver(paused=True)`` then ``await sim.run_until(5.0)``. A
+        backward jump meanwhile does not end the wait: it goes on until time reaches
+        ``when`` again.
+        """
+        when_ns = self._target_ns(when)
+        if self._state is _STOPPED:
+            raise LoopClosedError(self._stopped_message())
+        if self._state is _NEW:
+            self.start()
+        while self._now_ns < when_ns:
+            if self._pacer.paused:
+                self._extend_step_until(when_ns)
+            self._check_can_wait()
+            assert self._loop is not None
+            fut: asyncio.Future[None] = self._loop.create_future()
+            heapq.heappush(self._late, (when_ns, self._seq(), fut))
+            if when_ns < self._wait_target:
+                self._poke()
+            try:
+                await fut
+            except ClockJumped:
+                continue
+            except Exception as exc:
+                if exc is self._error:
+                    self._error_reported = True
+                raise
+
+    @staticmethod
+    def _target_ns(when: object) -> int:
+        if isinstance(when, Time):
+            if when.clock_type is not SIM:
+                raise ClockMismatchError(
+                    f"run_until() needs a sim time or seconds, got a {when.clock_type.value} time"
+                )
+            return when.nanoseconds
+        if isinstance(when, Duration):
+            raise InvalidTypeError(
+                "run_until() needs a sim Time or seconds since the sim epoch, got Duration; "
+                "to run for a duration use run_until(sim.now() + duration)"
+            )
+        return to_nonnegative_nanoseconds(when, "run_until() time")
+
+    def _stopped_message(self) -> str:
+        message = (
+            "this SimDriver is stopped and cannot be used again; create a new SimDriver "
+            "(it can take over the same time source)"
+        )
+        if self._error is not None:
+            message += f"; it stopped because of {type(self._error).__name__}: {self._error}"
+        return message
+
+    # ------------------------------------------------------------ controls
+
+    def _require_running(self, what: str) -> None:
+        if self._state is _RUNNING:
+            return
+        if self._state is _STOPPED:
+            raise LoopClosedError(self._stopped_message())
+        raise NotRunningError(
+            f"{what} needs a running SimDriver; start it first (async with "
+            "evclock.SimDriver() as sim: ..., or sim.start()), or create it with paused=True "
+            "to start paused"
+        )
+
+    def pause(self) -> None:
+        """Stop sim time from advancing; the loop and its I/O keep running."""
+        self._require_running("pause()")
+        self._pacer.pause()
+        self._step_until_ns = None
+        self._poke()
+
+    def resume(self) -> None:
+        """Let sim time advance again at the requested rtf."""
+        self._require_running("resume()")
+        self._pacer.resume()
+        self._step_until_ns = None
+        self._poke()
+
+    def step(self, count: int = 1) -> None:
+        """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
+        the next deadline on virtual time), then stay paused."""
+        self._require_running("step()")
+        if isinstance(count, bool) or not isinstance(count, int):
+            raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
+        if count < 1:
+            raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
+        self._pacer.step(count)
+        self._pacer.reanchor()  # pace the steps from now, not from before the pause
+        self._poke()
+
+    def step_until(self, when: Time) -> None:
+        """While paused, let sim time advance until it reaches ``when``, then stay paused.
+
+        Virtual time stops exactly at ``when``; physics at the first step boundary at or
+        after it.
+        """
+        self._require_running("step_until()")
+        if not isinstance(when, Time):
+            raise InvalidTypeError(f"step_until() needs a Time, got {type(when).__name__}")
+        if when.clock_type is not SIM:
+            raise ClockMismatchError(
+                f"step_until() needs a sim time, got a {when.clock_type.value} time"
+            )
+        if when.nanoseconds <= self._now_ns:
+            raise InvalidArgumentError(
+                f"step_until() target {when} is not after the current sim time {self.now()}"
+            )
+        self._pacer.run_until(when.nanoseconds)
+        self._step_until_ns = when.nanoseconds
+        self._pacer.reanchor()
+        heapq.heappush(self._heap, (when.nanoseconds, self._seq(), None))  # stop exactly there
+        self._poke()
+
+    def _extend_step_until(self, when_ns: int) -> None:
+        if self._step_until_ns is None or self._step_until_ns < when_ns:
+            self._pacer.run_until(when_ns)
+            self._step_until_ns = when_ns
+            self._pacer.reanchor()
+            self._poke()
+
+    @contextlib.contextmanager
+    def hold_time(self) -> Iterator[None]:
+        """Keep sim time from advancing while the block runs (from the loop's thread).
+
+        The driver cannot see work outside the loop (threads, executor jobs, a reply from
+        another process): wrap it to keep it in lockstep, e.g.
+        ``with sim.hold_time(): data = await asyncio.to_thread(read_sensor)``.
+        """
+        self._holds += 1
+        try:
+            yield
+        finally:
+            self._holds -= 1
+            if not self._holds:
+                self._poke()
+
+    # ------------------------------------------------------------ scheduling
+
+    def _push_sleep(self, when_ns: int) -> asyncio.Future[None]:
+        """A future resolved when sim time reaches ``when_ns`` (every sim-time wait ends here)."""
+        loop = self._loop
+        if self._state is not _RUNNING or asyncio.events._get_running_loop() is not loop:
+            return self._wait_refused()
+        assert loop is not None
+        fut: asyncio.Future[None] = loop.create_future()
+        heap = self._heap
+        heapq.heappush(heap, (when_ns, self._seq(), fut))
+        if when_ns < self._wait_target:
+            self._poke()
+        if len(heap) > self._compact_at:
+            self._compact()
+        return fut
+
+    def _wait_refused(self) -> asyncio.Future[None]:
+        loop = self._loop
+        if self._draining and loop is not None and asyncio.events._get_running_loop() is loop:
+            fut: asyncio.Future[None] = loop.create_future()
+            fut.cancel()
+            return fut
+        self._check_can_wait()
+        raise AssertionError("unreachable")
+
+    def _check_can_wait(self) -> None:
+        if self._state is _RUNNING and asyncio.events._get_running_loop() is self._loop:
+            return
+        if self._state is _STOPPED:
+            raise LoopClosedError(self._stopped_message())
+        if self._state is _NEW:
+            raise NotRunningError(
+                "this SimDriver is not running: start it (async with evclock.SimDriver() as "
+                "sim: ..., or sim.start()) before waiting on its clock"
+            )
+        raise NotRunningError(
+            "this SimDriver's clock can only be waited on from the event loop the driver "
+            "runs on (in its thread)"
+        )
+
+    def _compact(self) -> None:
+        """Drop cancelled waits (lazily, so that many cancellations cost O(1) each)."""
+        heap = [e for e in self._heap if e[2] is None or not e[2].done()]
+        heapq.heapify(heap)
+        self._heap[:] = heap
+        self._compact_at = max(64, 2 * len(heap))
+
+    def _next_deadline(self) -> int | None:
+        heap = self._heap
+        while heap:
+            fut = heap[0][2]
+            if fut is not None and fut.done():
+                heapq.heappop(heap)
+                continue
+            break
+        late = self._late
+        while late and late[0][2].done():
+            heapq.heappop(late)
+        if heap:
+            return min(heap[0][0], late[0][0]) if late else heap[0][0]
+        return late[0][0] if late else None
+
+    def _fire_late(self) -> bool:
+        """Wake the run_until() waits due now (after the work due now has settled)."""
+        late = self._late
+        now = self._now_ns
+        fired = False
+        while late and late[0][0] <= now:
+            fut = heapq.heappop(late)[2]
+            if not fut.done():
+                fut.set_result(None)
+                fired = True
+        return fired
+
+    def _fire_due(self) -> bool:
+        """Wake every wait due at the current time, in deadline then FIFO order."""
+        heap = self._heap
+        now = self._now_ns
+        fired = False
+        while heap and heap[0][0] <= now:
+            fut = heapq.heappop(heap)[2]
+            if fut is not None and not fut.done():
+                fut.set_result(None)
+                fired = True
+        return fired
+
+    def _poke(self) -> None:
+        fut = self._poke_fut
+        if fut is not None and not fut.done():
+            fut.set_result(None)
+
+    async def _wait_poke(self, timeout: float | None, target: float) -> None:
+        """Wait up to ``timeout`` wall seconds (None: no limit) or until poked: a control
+        changed, stop() was called, or a wait earlier than ``target`` was registered."""
+        loop = self._loop
+        assert loop is not None
+        fut: asyncio.Future[None] = loop.create_future()
+        self._poke_fut = fut
+        self._wait_target = target
+        handle = None if timeout is None else loop.call_later(timeout, _resolve, fut)
+        try:
+            await fut
+        finally:
+            self._poke_fut = None
+            self._wait_target = math.inf
+            if handle is not None:
+                handle.cancel()
+
+    # ------------------------------------------------------------ the engine
+
+    def _quiescent(self) -> bool:
+        """Nothing but the current task can run now (as far as this loop lets us see)."""
+        ready = self._ready_queue
+        if ready is not None:
+            return not ready
+        loop = self._loop
+        assert loop is not None
+        me = asyncio.current_task(loop)
+        for task in asyncio.all_tasks(loop):
+            if task is me:
+                continue
+            waiter = getattr(task, "_fut_waiter", _UNKNOWN)
+            if waiter is None or (waiter is not _UNKNOWN and waiter.done()):
+                return False
+        return True
+
+    async def _settle(self, *, stop_early: bool) -> None:
+        """Yield until the work woken at the current sim time is done (bounded)."""
+        needed = 1 if self._ready_queue is not None else _QUIET_CHECKS_BY_TASKS
+        quiet = 0
+        for _ in range(self._max_settle_yields):
+            await asyncio.sleep(0)
+            if stop_early and self._stopping:
+                return
+            if self._heap and self._heap[0][0] <= self._now_ns and self._fire_due():
+                quiet = 0  # clock.sleep(0) and sleep_until(now) wake like a yield
+                continue
+            if self._quiescent():
+                quiet += 1
+                if quiet >= needed:
+                    return
+            else:
+                quiet = 0
+        if stop_early:
+            self._lockstep_overruns += 1
+
+    def _pacer_wait(self, timeout: float | None) -> bool:
+        # The Pacer blocks through this callback on a SimEventLoop; here it only records how
+        # long to wait and abandons the advance: the driver awaits that on the host loop.
+        self._pace_waiting = True
+        self._pace_timeout = timeout
+        return True
+
+    async def _run(self) -> None:
+        pacer = self._pacer
+        source = self._source
+        error: BaseException | None = None
+        try:
+            while True:
+                self._fire_due()
+                await self._settle(stop_early=True)
+                if self._stopping:
+                    return
+                if self._late and self._late[0][0] <= self._now_ns and self._fire_late():
+                    continue
+                if self._holds:
+                    # Time is held; waits due now (clock.sleep(0)) still wake.
+                    await self._wait_poke(None, self._now_ns + 1)
+                    continue
+                target = self._next_deadline()
+                if target is not None and target <= self._now_ns:
+                    continue
+                if target is None and not source.free_running:
+                    await self._wait_poke(None, math.inf)
+                    pacer.reanchor()  # standing still with nothing scheduled is not lag
+                    continue
+                if target is not None and source.discrete_event and pacer.idle:
+                    self._now_ns = target
+                    continue
+                self._pace_waiting = False
+                self._probe.arm()
+                now = source.advance(target, None if pacer.idle else pacer.allow)
+                # A discrete-event source whose jumps the driver made itself may report a
+                # stale time when its gate says no: the driver's time is the truth then.
+                self._now_ns = max(now, self._now_ns) if source.discrete_event else now
+                if self._pace_waiting:
+                    await self._wait_poke(
+                        self._pace_timeout, math.inf if target is None else target
+                    )
+        except BaseException as exc:
+            error = exc
+            raise
+        finally:
+            self._shutdown(error)
+
+    def _shutdown(self, error: BaseException | None) -> None:
+        self._state = _STOPPED
+        self._stopping = True
+        failure = error if isinstance(error, Exception) else None
+        self._error = failure
+        heap, self._heap = self._heap, []
+        for _, _, fut in heap:
+            if fut is None or fut.done():
+                continue
+            if failure is not None:
+                fut.set_exception(failure)
+            else:
+                fut.cancel()
+        late, self._late = self._late, []
+        for _, _, fut in late:
+            if not fut.done():
+                fut.set_exception(
+                    failure
+                    or LoopClosedError(
+                        "the SimDriver was stopped before sim time reached the run_until() target"
+                    )
+                )
+        source = self._source
+        if source._loop is self:
+            source.detach()  # a discrete-event source keeps the time the driver reached
+        loop = self._loop
+        assert loop is not None
+        if _clock._attached.get(loop) is self._clock:
+            if self._previous_clock is not None:
+                attach_clock(loop, self._previous_clock)
+            else:
+                detach_clock(loop)
+
+    # ------------------------------------------------ what a time source needs
+
+    @property
+    def _ready(self) -> Any:
+        """Truthy once a task became runnable (sources stop stepping then)."""
+        if self._ready_queue is not None:
+            return self._ready_queue
+        return self._probe
+
+    def _runs_on(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Whether tasks of ``loop`` may wait on this driver's sim time (for sources)."""
+        return self._state is _RUNNING and loop is self._loop
+
+    def is_closed(self) -> bool:
+        """True once stopped (a source then moves its time without a jump)."""
+        return self._state is _STOPPED
+
+    def call_exception_handler(self, context: dict[str, Any]) -> None:
+        """Report an error from a source (a failing step hook) to the host loop."""
+        loop = self._loop
+        assert loop is not None
+        loop.call_exception_handler(context)
+
+    def _jump_time(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
+        """Move sim time discontinuously (a reset or a restored snapshot); see SimEventLoop."""
+        jump = TimeJump(Time._from_ns(before_ns, SIM), Time._from_ns(after_ns, SIM))
+        handlers = [h for h in list(self._jump_handlers) if h.threshold.matches(jump)]
+        for handler in handlers:
+            if handler.pre is not None:
+                handler.pre(jump)
+        assign(after_ns)
+        self._now_ns = after_ns
+        heap, self._heap = self._heap, []
+        late, self._late = self._late, []
+        for _, _, fut in heap + late:
+            if fut is not None and not fut.done():
+                fut.set_exception(ClockJumped(jump))
+        if self._step_until_ns is not None and self._step_until_ns > after_ns:
+            heapq.heappush(self._heap, (self._step_until_ns, self._seq(), None))
+        self._pacer.reanchor()
+        self._poke()
+        for handler in handlers:
+            if handler.post is not None:
+                handler.post(jump)
+        return jump

@@ -1,0 +1,348 @@
+"""The simulation behind the dashboard: a PyBullet scenario on a :class:`evclock.SimDriver`.
+
+:class:`SimService` owns a PyBullet client, a :class:`evclock.PyBulletTimeSource` stepping it
+and a driver that paces the source on the *server's* event loop. The scenario's controllers
+are ordinary tasks on that loop and wait on ``driver.clock`` (sim time), while the HTTP
+handlers and the history sampler, on the same loop, use plain asyncio (wall time).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import dataclasses
+import logging
+import math
+import time
+from types import TracebackType
+from typing import Any, cast
+
+import pybullet as p
+
+from evclock import PyBulletTimeSource, Rate, SimDriver
+from sims import Scenario, get_scenario
+
+from .config import DashboardConfig
+
+log = logging.getLogger(__name__)
+
+_EPISODES_KEPT = 20
+
+
+def finite(value: Any) -> Any:
+    """``value`` with NaN and infinities replaced by None (JSON has no such numbers)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+@dataclasses.dataclass(slots=True)
+class Episode:
+    """One run of the scenario's mission, from its world's load to the mission's end."""
+
+    number: int
+    seed: int
+    scenario: Scenario
+    started_at: float
+    """Sim seconds at the start."""
+    first_rate: int
+    """Index of this episode's first rate in ``clock.rates``."""
+    ended_at: float | None = None
+    outcome: str = "running"
+    """``running``, ``success``, ``failure``, ``timeout`` or ``error``."""
+    error: str | None = None
+
+    def as_dict(self, now: float) -> dict[str, Any]:
+        """The episode for JSON (``now``: current sim seconds, for the running duration)."""
+        summary = {key: finite(value) for key, value in self.scenario.summary().items()}
+        end = self.ended_at if self.ended_at is not None else now
+        return {
+            "number": self.number,
+            "seed": self.seed,
+            "outcome": self.outcome,
+            "started_at_s": self.started_at,
+            "ended_at_s": self.ended_at,
+            "duration_s": end - self.started_at,
+            "error": self.error,
+            "summary": summary,
+        }
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class Sample:
+    """One point of the plotted history."""
+
+    wall: float
+    """Unix time, seconds."""
+    sim: float
+    achieved_rtf: float | None
+    requested_rtf: float | None
+    lateness_ms: dict[str, float | None]
+    """Mean lateness of each loop's ticks since the previous sample (None: no tick)."""
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class StepResult:
+    """What ``POST /api/step`` reports besides the state."""
+
+    count: int
+    target_ns: int
+    completed: bool
+    """False if the steps were still under way after ``config.step_timeout`` wall seconds."""
+
+
+class SimService:
+    """A scenario running in episodes on a sim-time driver, with controls and statistics.
+
+    Use as an async context manager on the loop that serves the app::
+
+        async with SimService(DashboardConfig(scenario="kuka")) as sim:
+            sim.state(); sim.pause(); await sim.step(3); sim.set_rtf(2.0); sim.resume()
+
+    Control errors are evclock's own (:class:`evclock.EvClockError` and subclasses, e.g.
+    stepping while running, a non-positive rtf), with evclock's messages.
+    """
+
+    def __init__(self, config: DashboardConfig) -> None:
+        self.config = config
+        self._scenario_cls = get_scenario(config.scenario)
+        self._stack = contextlib.AsyncExitStack()
+        self._client = -1
+        self._source: PyBulletTimeSource | None = None
+        self._driver: SimDriver | None = None
+        self._episode: Episode | None = None
+        self._finished: collections.deque[Episode] = collections.deque(maxlen=_EPISODES_KEPT)
+        self._history: collections.deque[Sample] = collections.deque(maxlen=config.history_size)
+        self._last_counts: dict[Rate, tuple[int, int]] = {}
+        self._achieved_rtf: float | None = None
+        self._steps_before_reset = 0
+        self._step_lock = asyncio.Lock()
+
+    # ---------------------------------------------------------------- lifecycle
+
+    async def __aenter__(self) -> SimService:
+        try:
+            await self._start()
+        except BaseException:
+            await self._stack.aclose()
+            raise
+        return self
+
+    async def __aexit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        await self._stack.aclose()
+
+    async def _start(self) -> None:
+        client = p.connect(p.DIRECT)
+        if client < 0:
+            raise RuntimeError("could not connect a PyBullet DIRECT client")
+        self._client = client
+        self._stack.callback(self._disconnect)
+        scenario = self._scenario_cls(client, self.config.seed)  # sets the 1/240 s time step
+        self._source = source = PyBulletTimeSource(client)
+        driver = SimDriver(source, rtf=self.config.rtf, paused=self.config.paused)
+        self._driver = await self._stack.enter_async_context(driver)
+        self._episode = self._new_episode(1, self.config.seed, scenario)
+        self._take_sample()
+        tasks = [
+            asyncio.create_task(self._run_episodes(), name="dashboard.episodes"),
+            asyncio.create_task(self._sample_forever(), name="dashboard.sampler"),
+        ]
+        self._stack.push_async_callback(_cancel_all, tasks)
+
+    def _disconnect(self) -> None:
+        if p.isConnected(self._client):
+            p.disconnect(self._client)
+
+    @property
+    def driver(self) -> SimDriver:
+        """The running driver (after entering the service)."""
+        if self._driver is None:
+            raise RuntimeError("the simulation is not running: enter the SimService first")
+        return self._driver
+
+    @property
+    def source(self) -> PyBulletTimeSource:
+        """The PyBullet time source the driver steps."""
+        if self._source is None:
+            raise RuntimeError("the simulation is not running: enter the SimService first")
+        return self._source
+
+    @property
+    def physics_steps(self) -> int:
+        """Physics steps taken since the start (counted across episode resets)."""
+        return self._steps_before_reset + self.source.step_index
+
+    # ----------------------------------------------------------------- episodes
+
+    def _new_episode(self, number: int, seed: int, scenario: Scenario) -> Episode:
+        clock = self.driver.clock
+        return Episode(number, seed, scenario, clock.now().seconds, len(clock.rates))
+
+    async def _run_episodes(self) -> None:
+        try:
+            await self._episodes_loop()
+        except Exception:
+            log.exception("the episode runner stopped")
+            raise
+
+    async def _episodes_loop(self) -> None:
+        clock = self.driver.clock
+        while True:
+            episode = self._episode
+            assert episode is not None
+            await self._run_mission(episode)
+            self._finished.append(episode)
+            log.info("episode %d (seed %d): %s", episode.number, episode.seed, episode.outcome)
+            if not self.config.repeat:
+                return  # the physics keeps stepping; the controllers are done
+            await clock.sleep(self.config.episode_gap)
+            # Reset the world at the current time (no time jump), then load the next one.
+            self._steps_before_reset += self.source.step_index
+            self.source.reset_simulation(start=clock.now())
+            seed = episode.seed + 1
+            scenario = self._scenario_cls(self._client, seed)
+            self._episode = self._new_episode(episode.number + 1, seed, scenario)
+
+    async def _run_mission(self, episode: Episode) -> None:
+        clock = self.driver.clock
+        limit = self.config.episode_limit * episode.scenario.default_until
+        mission = asyncio.create_task(episode.scenario.run(clock), name="dashboard.mission")
+        deadline = asyncio.ensure_future(clock.sleep(limit))
+        try:
+            await asyncio.wait({mission, deadline}, return_when=asyncio.FIRST_COMPLETED)
+            episode.ended_at = clock.now().seconds
+        finally:
+            await _cancel_all([mission, deadline])
+        if not mission.done() or mission.cancelled():
+            episode.outcome = "timeout"
+        elif (error := mission.exception()) is not None:
+            episode.outcome, episode.error = "error", f"{type(error).__name__}: {error}"
+            log.error("episode %d failed", episode.number, exc_info=error)
+        else:
+            episode.outcome = "success" if episode.scenario.success() else "failure"
+
+    def current_rates(self) -> tuple[Rate, ...]:
+        """The rate loops of the current episode, in creation order."""
+        first = self._episode.first_rate if self._episode is not None else 0
+        return self.driver.clock.rates[first:]
+
+    # ------------------------------------------------------------------ history
+
+    async def _sample_forever(self) -> None:
+        while True:
+            # Plain asyncio on the server's loop: wall time, whatever sim time does.
+            await asyncio.sleep(self.config.sample_period)
+            self._take_sample()
+
+    def _take_sample(self) -> None:
+        driver = self.driver
+        self._achieved_rtf = driver.achieved_rtf()
+        counts: dict[Rate, tuple[int, int]] = {}
+        lateness: dict[str, float | None] = {}
+        for rate in self.current_rates():
+            stats = rate.stats
+            ticks, total = stats.ticks, stats.total_lateness_ns
+            before_ticks, before_total = self._last_counts.get(rate, (0, 0))
+            new_ticks = ticks - before_ticks
+            lateness[rate.name] = (total - before_total) / new_ticks / 1e6 if new_ticks else None
+            counts[rate] = (ticks, total)
+        self._last_counts = counts
+        sample = Sample(time.time(), driver.now().seconds, self._achieved_rtf, driver.rtf, lateness)
+        self._history.append(sample)
+
+    def history(self) -> dict[str, Any]:
+        """The sampled history as columns (uPlot's layout): one list per series."""
+        samples = list(self._history)
+        names = list(dict.fromkeys(name for s in samples for name in s.lateness_ms))
+        return {
+            "wall_s": [s.wall for s in samples],
+            "sim_time_s": [s.sim for s in samples],
+            "achieved_rtf": [s.achieved_rtf for s in samples],
+            "requested_rtf": [s.requested_rtf for s in samples],
+            "lateness_ms": {name: [s.lateness_ms.get(name) for s in samples] for name in names},
+        }
+
+    # --------------------------------------------------------------------- state
+
+    def state(self) -> dict[str, Any]:
+        """Everything the dashboard shows, as JSON-ready plain data."""
+        driver, source = self.driver, self.source
+        now = driver.now()
+        episode = self._episode
+        return {
+            "scenario": {
+                "name": self._scenario_cls.name,
+                "description": self._scenario_cls.description,
+                "repeat": self.config.repeat,
+            },
+            "sim_time_s": now.seconds,
+            "sim_time_ns": now.nanoseconds,
+            "physics_steps": self.physics_steps,
+            "time_step_s": source.time_step,
+            "paused": driver.paused,
+            "rtf": driver.rtf,
+            "achieved_rtf": finite(self._achieved_rtf),
+            "lockstep_overruns": driver.lockstep_overruns,
+            "loops": [_rate_info(rate) for rate in self.current_rates()],
+            "episode": episode.as_dict(now.seconds) if episode is not None else None,
+            "finished_episodes": [e.as_dict(now.seconds) for e in reversed(self._finished)],
+        }
+
+    # ------------------------------------------------------------------ controls
+
+    def pause(self) -> None:
+        """Stop sim time (the HTTP server keeps serving)."""
+        self.driver.pause()
+
+    def resume(self) -> None:
+        """Let sim time advance again at the requested rtf."""
+        self.driver.resume()
+
+    def set_rtf(self, rtf: object) -> None:
+        """Change the requested real-time factor (None: as fast as possible).
+
+        ``rtf`` is passed to evclock unchecked: evclock validates it and raises its errors.
+        """
+        self.driver.rtf = rtf  # type: ignore[assignment]
+
+    async def step(self, count: object = 1) -> StepResult:
+        """While paused, advance exactly ``count`` physics steps and wait until they are done.
+
+        Waits at most ``config.step_timeout`` wall seconds (the steps go on after that).
+        ``count`` is passed to evclock unchecked (it raises for a bad count or when running).
+        """
+        async with self._step_lock:
+            driver = self.driver
+            driver.step(count)  # type: ignore[arg-type]
+            steps = cast(int, count)  # evclock accepted it: an int >= 1
+            target = self.source.time_of_step(steps)
+            try:
+                async with asyncio.timeout(self.config.step_timeout):  # wall time
+                    await driver.clock.sleep_until(target)  # sim time
+            except TimeoutError:
+                return StepResult(steps, target.nanoseconds, completed=False)
+            return StepResult(steps, target.nanoseconds, completed=True)
+
+
+def _rate_info(rate: Rate) -> dict[str, Any]:
+    stats = rate.stats
+    return {
+        "name": rate.name,
+        "hz": rate.hz,
+        "policy": rate.policy,
+        **stats.as_dict(),
+        "p50_lateness_s": stats.percentile(50).seconds,
+    }
+
+
+async def _cancel_all(tasks: list[asyncio.Future[Any]]) -> None:
+    """Cancel ``tasks`` and wait until they are done (their errors are theirs to report)."""
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)

@@ -1,0 +1,397 @@
+"""The live dashboard example (``examples/dashboard``) at the API level.
+
+The app runs in-process under uvicorn (``BackgroundServer``: a background thread with its
+own event loop, on a free port) and the tests talk HTTP to it with httpx: the driver paces
+the simulation on the server's loop between requests, as in production. The simulation
+starts paused so that every check of sim time is exact; where time must move, the test
+polls with a bounded wait and never asserts on wall time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import time
+from collections.abc import Callable, Iterator
+from fractions import Fraction
+from typing import Any
+
+import httpx
+import pytest
+
+import evclock
+from examples.dashboard import BackgroundServer, DashboardConfig, create_app
+from examples.dashboard.__main__ import build_parser, parse_rtf
+
+STEP_NS = Fraction(10**9, 240)
+"""One physics step of every scenario (1/240 s), exactly, in nanoseconds."""
+WAIT = 30.0
+"""Wall seconds a poll may take before the test fails (a hang guard, not a performance check)."""
+
+
+def exact_time_ns(steps: int) -> int:
+    """Sim time after ``steps`` physics steps from 0, as evclock keeps it."""
+    return int(steps * STEP_NS)
+
+
+@pytest.fixture
+def make_client() -> Iterator[Callable[..., httpx.Client]]:
+    """Serve the app (on uvicorn's ``loop``) with a DashboardConfig built from keyword arguments
+    (paused by default); return an HTTP client for it."""
+    with contextlib.ExitStack() as stack:
+
+        def make(loop: str = "asyncio", **options: Any) -> httpx.Client:
+            options.setdefault("paused", True)
+            app = create_app(DashboardConfig(**options))
+            server = stack.enter_context(BackgroundServer(app, loop=loop))  # type: ignore[arg-type]
+            return stack.enter_context(httpx.Client(base_url=server.url, timeout=WAIT))
+
+        yield make
+
+
+@pytest.fixture
+def client(make_client: Callable[..., httpx.Client]) -> httpx.Client:
+    """The default app (kuka, rtf 1), started paused."""
+    return make_client()
+
+
+def state(client: httpx.Client) -> dict[str, Any]:
+    response = client.get("/api/state")
+    assert response.status_code == 200, response.text
+    body: dict[str, Any] = response.json()
+    return body
+
+
+def post(client: httpx.Client, path: str, body: object = None) -> httpx.Response:
+    content = None if body is None else json.dumps(body)
+    return client.post(path, content=content, headers={"Content-Type": "application/json"})
+
+
+def post_ok(client: httpx.Client, path: str, body: object = None) -> dict[str, Any]:
+    response = post(client, path, body)
+    assert response.status_code == 200, response.text
+    result: dict[str, Any] = response.json()
+    return result
+
+
+def wait_for(
+    predicate: Callable[[dict[str, Any]], bool], client: httpx.Client, what: str
+) -> dict[str, Any]:
+    """Poll /api/state until ``predicate(state)`` holds (fails after WAIT wall seconds)."""
+    deadline = time.monotonic() + WAIT
+    while True:
+        current = state(client)
+        if predicate(current):
+            return current
+        assert time.monotonic() < deadline, f"timed out waiting for {what}; last state {current}"
+        time.sleep(0.02)
+
+
+def assert_error(response: httpx.Response, kind: type[Exception], *fragments: str) -> str:
+    """A 400 JSON error of evclock type ``kind`` whose message contains ``fragments``."""
+    assert response.status_code == 400, response.text
+    body = response.json()
+    assert body["type"] == kind.__name__
+    message: str = body["error"]
+    for fragment in fragments:
+        assert fragment in message
+    return message
+
+
+# ------------------------------------------------------------------------- state
+
+
+def test_initial_state_is_paused_at_zero_with_the_scenario_loops(client: httpx.Client) -> None:
+    current = wait_for(lambda s: len(s["loops"]) == 2, client, "the controllers' rate loops")
+    assert current["paused"] is True
+    assert current["sim_time_ns"] == 0
+    assert current["physics_steps"] == 0
+    assert current["rtf"] == 1.0
+    assert current["time_step_s"] == 1 / 240
+    assert current["lockstep_overruns"] == 0
+    assert current["scenario"]["name"] == "kuka"
+    names = {loop["name"]: loop for loop in current["loops"]}
+    assert set(names) == {"joint_control", "planner"}
+    assert names["joint_control"]["hz"] == 100
+    assert names["planner"]["ticks"] == 1  # tick 0 comes at once, even paused
+    assert {"ticks", "missed", "mean_lateness_s", "p99_lateness_s", "max_lateness_s"} <= set(
+        names["planner"]
+    )
+    assert current["episode"]["number"] == 1
+    assert current["episode"]["outcome"] == "running"
+    assert current["finished_episodes"] == []
+
+
+def test_paused_sim_time_does_not_advance(client: httpx.Client) -> None:
+    first = state(client)
+    time.sleep(0.3)  # the driver keeps running meanwhile; sim time must not move
+    assert state(client)["sim_time_ns"] == first["sim_time_ns"] == 0
+
+
+# ------------------------------------------------------------------------- step
+
+
+def test_step_advances_exactly_the_requested_physics_steps(client: httpx.Client) -> None:
+    result = post_ok(client, "/api/step", {"count": 5})
+    assert result["step"] == {"count": 5, "target_ns": exact_time_ns(5), "completed": True}
+    assert result["physics_steps"] == 5
+    assert result["sim_time_ns"] == exact_time_ns(5)
+    assert result["paused"] is True
+
+    result = post_ok(client, "/api/step")  # default: one step
+    assert result["physics_steps"] == 6
+    assert result["sim_time_ns"] == exact_time_ns(6)
+    time.sleep(0.2)
+    assert state(client)["sim_time_ns"] == exact_time_ns(6)  # and stays paused
+
+
+def test_stepping_runs_the_controllers_on_sim_time(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(rtf=None)  # steps are paced too: take them as fast as possible
+    post_ok(client, "/api/step", {"count": 240})  # one simulated second
+    loops = {loop["name"]: loop for loop in state(client)["loops"]}
+    # 100 Hz and 10 Hz rates over [0, 1 s]: ticks at 0, 10 ms, ..., 1 s and 0, 0.1, ..., 1 s.
+    assert loops["joint_control"]["ticks"] == 101
+    assert loops["planner"]["ticks"] == 11
+    assert loops["joint_control"]["missed"] == 0
+    # Deadlines fall between 1/240 s physics steps: lateness is under one step.
+    assert 0 < loops["joint_control"]["max_lateness_s"] < 1 / 240
+
+
+def test_step_while_running_is_a_400_with_evclocks_message(client: httpx.Client) -> None:
+    post_ok(client, "/api/resume")
+    message = assert_error(post(client, "/api/step", {"count": 1}), evclock.PacingError)
+    assert "pause" in message
+
+
+@pytest.mark.parametrize(
+    ("count", "kind", "fragment"),
+    [
+        (0, evclock.InvalidArgumentError, "0"),
+        (-3, evclock.InvalidArgumentError, "-3"),
+        ("2", evclock.InvalidTypeError, "str"),
+        (1.5, evclock.InvalidTypeError, "float"),
+        (True, evclock.InvalidTypeError, "bool"),
+    ],
+)
+def test_bad_step_counts_are_400s(
+    client: httpx.Client, count: object, kind: type[Exception], fragment: str
+) -> None:
+    assert_error(post(client, "/api/step", {"count": count}), kind, "count", fragment)
+    assert state(client)["physics_steps"] == 0
+
+
+# ------------------------------------------------------------------ pause/resume
+
+
+def test_resume_advances_and_pause_stops_sim_time(client: httpx.Client) -> None:
+    resumed = post_ok(client, "/api/resume")
+    assert resumed["paused"] is False
+    wait_for(lambda s: s["physics_steps"] > 10, client, "sim time to advance after resume")
+
+    paused = post_ok(client, "/api/pause")
+    assert paused["paused"] is True
+    frozen = paused["sim_time_ns"]
+    time.sleep(0.3)
+    later = state(client)
+    assert later["sim_time_ns"] == frozen
+    assert later["sim_time_ns"] == exact_time_ns(later["physics_steps"])
+
+    stepped = post_ok(client, "/api/step", {"count": 3})
+    assert stepped["physics_steps"] == later["physics_steps"] + 3
+
+
+@pytest.mark.parametrize("loop", ["asyncio", "uvloop"])
+def test_pause_step_resume_on_each_event_loop(
+    make_client: Callable[..., httpx.Client], loop: str
+) -> None:
+    """The driver settles differently on asyncio (ready queue) and uvloop (task inspection)."""
+    if loop == "uvloop":
+        pytest.importorskip("uvloop", reason="uvloop is not available on this platform")
+    client = make_client(loop=loop)
+    stepped = post_ok(client, "/api/step", {"count": 7})
+    assert (stepped["physics_steps"], stepped["sim_time_ns"]) == (7, exact_time_ns(7))
+    ticks = {rate["name"]: rate["ticks"] for rate in stepped["loops"]}
+    assert ticks == {"joint_control": 3, "planner": 1}  # 7 steps = 29.2 ms: 0, 10, 20 ms; 0 ms
+    post_ok(client, "/api/resume")
+    wait_for(lambda s: s["physics_steps"] > 30, client, "sim time to advance")
+    frozen = post_ok(client, "/api/pause")["sim_time_ns"]
+    time.sleep(0.2)
+    assert state(client)["sim_time_ns"] == frozen
+
+
+# -------------------------------------------------------------------------- rtf
+
+
+def test_rtf_can_be_changed_and_set_to_as_fast_as_possible(client: httpx.Client) -> None:
+    assert post_ok(client, "/api/rtf", {"rtf": 2.5})["rtf"] == 2.5
+    assert post_ok(client, "/api/rtf", {"rtf": 3})["rtf"] == 3.0
+    assert post_ok(client, "/api/rtf", {"rtf": None})["rtf"] is None
+    assert state(client)["rtf"] is None
+
+
+@pytest.mark.parametrize(
+    ("rtf", "kind", "fragment"),
+    [
+        (0, evclock.InvalidArgumentError, "positive"),
+        (-1.5, evclock.InvalidArgumentError, "-1.5"),
+        ("fast", evclock.InvalidTypeError, "str"),
+        (True, evclock.InvalidTypeError, "bool"),
+    ],
+)
+def test_bad_rtf_values_are_400s_and_keep_the_rtf(
+    client: httpx.Client, rtf: object, kind: type[Exception], fragment: str
+) -> None:
+    assert_error(post(client, "/api/rtf", {"rtf": rtf}), kind, "rtf", fragment)
+    assert state(client)["rtf"] == 1.0
+
+
+def test_achieved_rtf_is_reported_while_running(make_client: Callable[..., httpx.Client]) -> None:
+    client = make_client(paused=False, rtf=None)
+    current = wait_for(
+        lambda s: s["achieved_rtf"] is not None and s["achieved_rtf"] > 0,
+        client,
+        "an achieved real-time factor",
+    )
+    assert current["rtf"] is None
+
+
+# ------------------------------------------------------------------ bad bodies
+
+
+@pytest.mark.parametrize(
+    ("path", "content", "fragment"),
+    [
+        ("/api/step", b"{not json", "not valid JSON"),
+        ("/api/step", b"[1, 2]", "JSON object"),
+        ("/api/rtf", b'"fast"', "JSON object"),
+        ("/api/rtf", b"{}", '{"rtf"'),
+    ],
+)
+def test_malformed_bodies_are_400s(
+    client: httpx.Client, path: str, content: bytes, fragment: str
+) -> None:
+    response = client.post(path, content=content)
+    assert response.status_code == 400, response.text
+    assert fragment in response.json()["error"]
+
+
+def test_controls_need_post(client: httpx.Client) -> None:
+    assert client.get("/api/pause").status_code == 405
+
+
+# ------------------------------------------------------------- history, page
+
+
+def test_history_has_one_column_per_series(client: httpx.Client) -> None:
+    post_ok(client, "/api/step", {"count": 24})
+    deadline = time.monotonic() + WAIT
+    while len((history := client.get("/api/history").json())["wall_s"]) < 3:
+        assert time.monotonic() < deadline, "the sampler took no samples"
+        time.sleep(0.05)
+    columns = [history["wall_s"], history["sim_time_s"], history["achieved_rtf"]]
+    columns += [history["requested_rtf"], *history["lateness_ms"].values()]
+    assert len({len(column) for column in columns}) == 1
+    assert set(history["lateness_ms"]) == {"joint_control", "planner"}
+    assert history["wall_s"] == sorted(history["wall_s"])
+    assert history["sim_time_s"][-1] == exact_time_ns(24) / 1e9
+
+
+def test_page_and_vendored_assets_are_served(client: httpx.Client) -> None:
+    page = client.get("/")
+    assert page.status_code == 200
+    assert 'id="sim-time"' in page.text
+    assert 'id="rtf-plot"' in page.text
+    for asset in ("dashboard.js", "dashboard.css", "vendor/uplot/uPlot.iife.min.js"):
+        response = client.get(f"/static/{asset}")
+        assert response.status_code == 200, asset
+        assert "cdn" not in response.text.lower() or asset.startswith("vendor")
+    assert "MIT" in client.get("/static/vendor/uplot/LICENSE").text
+
+
+# ------------------------------------------------------------------- episodes
+
+
+def test_a_finished_mission_starts_the_next_episode_without_a_time_jump(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(paused=False, rtf=None)
+    current = wait_for(lambda s: s["episode"]["number"] >= 2, client, "the second episode")
+    first = current["finished_episodes"][-1]
+    assert first["number"] == 1
+    assert first["seed"] == 0
+    assert first["outcome"] == "success"
+    assert 0 < first["summary"]["mission_time_s"] <= first["ended_at_s"]
+    assert first["duration_s"] == first["ended_at_s"] - first["started_at_s"]
+    episode = current["episode"]
+    assert episode["seed"] == episode["number"] - 1
+    previous = current["finished_episodes"][0]  # newest first
+    assert previous["number"] == episode["number"] - 1
+    assert episode["started_at_s"] >= previous["ended_at_s"] >= first["ended_at_s"]
+    # Steps are counted across the world reset, and sim time never went back.
+    assert current["sim_time_ns"] == exact_time_ns(current["physics_steps"])
+
+
+def test_once_keeps_stepping_the_physics_after_the_mission(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(paused=False, rtf=None, repeat=False)
+    done = wait_for(lambda s: s["finished_episodes"], client, "the mission to end")
+    wait_for(lambda s: s["sim_time_ns"] > done["sim_time_ns"], client, "physics after the mission")
+    assert state(client)["episode"]["number"] == 1
+
+
+def test_a_mission_over_its_sim_time_limit_is_a_timeout(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(paused=False, rtf=None, episode_limit=0.01)  # kuka: 0.1 s of sim time
+    current = wait_for(lambda s: s["finished_episodes"], client, "the mission's time limit")
+    first = current["finished_episodes"][-1]
+    assert first["outcome"] == "timeout"
+    assert first["duration_s"] == pytest.approx(0.1, abs=1 / 240)  # up to a step boundary
+
+
+@pytest.mark.parametrize("scenario", ["husky", "cartpole"])
+def test_other_scenarios(make_client: Callable[..., httpx.Client], scenario: str) -> None:
+    client = make_client(scenario=scenario)
+    result = post_ok(client, "/api/step", {"count": 12})
+    assert result["scenario"]["name"] == scenario
+    assert result["sim_time_ns"] == exact_time_ns(12)
+    assert len(result["loops"]) >= 1
+
+
+# ---------------------------------------------------------- config and command
+
+
+def test_unknown_scenario_lists_the_valid_names() -> None:
+    with pytest.raises(ValueError, match="valid names: kuka, husky, cartpole"):
+        DashboardConfig(scenario="nope")
+
+
+def test_command_line() -> None:
+    args = build_parser().parse_args([])
+    assert (args.scenario, args.port, args.rtf, args.paused, args.once) == (
+        "kuka",
+        8000,
+        1.0,
+        False,
+        False,
+    )
+    args = build_parser().parse_args(["--scenario", "husky", "--rtf", "max", "--port", "0"])
+    assert (args.scenario, args.rtf, args.port) == ("husky", None, 0)
+    assert parse_rtf("2.5") == 2.5
+    for bad in ("0", "-1", "nan", "fast"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            parse_rtf(bad)
+
+
+def test_background_server_serves_on_a_free_port() -> None:
+    app = create_app(DashboardConfig(paused=True))
+    with BackgroundServer(app) as server:
+        assert server.port > 0
+        response = httpx.post(server.url + "/api/step", json={"count": 2}, timeout=WAIT)
+        assert response.status_code == 200
+        assert response.json()["physics_steps"] == 2
+        assert httpx.get(server.url + "/", timeout=WAIT).status_code == 200
