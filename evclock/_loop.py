@@ -279,7 +279,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                     and sched
                     and len(io_map) <= 1
                     and not self._holds
-                    and len(_thread_registry) + len(_thread_limbo) <= 1
+                    and (len(_thread_registry) + len(_thread_limbo) <= 1 or self._only_daemons())
                 ):
                     when, _, kind, obj = sched[0]
                     if obj.done() if kind == _SLEEP else obj._cancelled:
@@ -435,6 +435,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         if self._holds or (
             self._watch_threads
             and len(_thread_registry) + len(_thread_limbo) > 1
+            and not self._only_daemons()
             and busy_threads(self._thread_id)
         ):
             self._wait_for_outside_work()
@@ -452,6 +453,13 @@ class SimEventLoop(asyncio.SelectorEventLoop):
         else:
             self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
 
+    def _only_daemons(self) -> bool:
+        """Whether every thread but the loop's is a daemon (ignored: background services)."""
+        me = self._thread_id
+        return not _thread_limbo and all(
+            t.daemon or t.ident == me for t in list(_thread_registry.values())
+        )
+
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
         event_list = self._selector.select(timeout)
@@ -461,7 +469,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
 
     def _wait_io(self, timeout: float | None) -> bool:
         """Pacing/pause wait: block up to ``timeout`` serving I/O; True if work is ready."""
-        if timeout is None and len(self._io_map) <= 1 and threading.active_count() <= 1:
+        if timeout is None and len(self._io_map) <= 1 and self._only_daemons():
             raise DeadlockError(
                 "the loop is paused and nothing could ever resume it: no I/O is "
                 "registered and no other thread runs; call resume() or step() from a "
@@ -686,7 +694,7 @@ class SimEventLoop(asyncio.SelectorEventLoop):
 
 
 def _describe_task(task: asyncio.Task[Any]) -> str:
-    """``name: outer() at file:line -> inner() at file:line, waiting on <future>``."""
+    """``name: outer() at file:line -> ... -> inner() at file:line, waiting on <future>``."""
     coro: Any = task.get_coro()
     frames = []
     while coro is not None:
@@ -698,7 +706,7 @@ def _describe_task(task: asyncio.Task[Any]) -> str:
         coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
         if not (hasattr(coro, "cr_frame") or hasattr(coro, "gi_frame")):
             break
-    where = " -> ".join(frames[:1] + frames[-1:]) if len(frames) > 1 else "".join(frames)
+    where = " -> ".join(frames)
     waiter = getattr(task, "_fut_waiter", None)
     waits_on = f", waiting on {_short(waiter)}" if waiter is not None else ""
     return f"{task.get_name()}: {where or repr(task.get_coro())}{waits_on}"

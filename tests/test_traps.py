@@ -252,3 +252,28 @@ def test_raw_socket_pair_reader_callback() -> None:
             b.close()
 
     assert evclock.run(main()) == b"ping"
+
+
+def test_idle_daemon_threads_neither_hold_time_nor_hide_a_paused_deadlock() -> None:
+    stop = threading.Event()
+    background = threading.Thread(target=stop.wait, daemon=True)  # a background service
+    background.start()
+    try:
+
+        async def sleeps() -> float:
+            await asyncio.sleep(5)
+            return asyncio.get_running_loop().time()
+
+        assert evclock.run(sleeps()) == 5.0
+
+        async def paused_forever() -> None:
+            loop = asyncio.get_running_loop()
+            assert isinstance(loop, evclock.SimEventLoop)
+            loop.pause()
+            await asyncio.sleep(1)
+
+        with pytest.raises(evclock.DeadlockError, match="the loop is paused and nothing could"):
+            evclock.run(paused_forever())
+    finally:
+        stop.set()
+        background.join()
