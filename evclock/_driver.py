@@ -56,7 +56,7 @@ from ._errors import (
 )
 from ._jumps import JumpHandle, TimeJump
 from ._loop import SimEventLoop
-from ._pacing import DEFAULT_MAX_LAG, Pacer, check_max_lag, check_rtf
+from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
 from ._time import SIM, Duration, Time, to_nonnegative_nanoseconds
 from .sources import TimeSource, VirtualTimeSource
 
@@ -166,7 +166,7 @@ def _resolve(fut: asyncio.Future[None]) -> None:
         fut.set_result(None)
 
 
-class SimDriver:
+class SimDriver(PacingControls):
     """Drives simulation time from a task on an event loop evclock does not own.
 
     For applications whose loop is not a :class:`SimEventLoop` - plain asyncio, uvloop, an
@@ -344,29 +344,6 @@ class SimDriver:
         settled (``max_settle_yields`` reached); 0 means every advance was in lockstep."""
         return self._lockstep_overruns
 
-    @property
-    def rtf(self) -> float | None:
-        """Requested real-time factor (None: as fast as possible). Settable while running."""
-        return self._pacer.rtf
-
-    @rtf.setter
-    def rtf(self, value: float | None) -> None:
-        self._pacer.rtf = value
-        self._poke()
-
-    @property
-    def paused(self) -> bool:
-        """Whether sim time is paused (sleeps due at the current time still wake)."""
-        return self._pacer.paused
-
-    def achieved_rtf(self) -> float | None:
-        """Real-time factor achieved over the last couple of wall seconds (None: not yet known).
-
-        Each call records a sample: poll it periodically (a progress bar, a dashboard).
-        """
-        self._pacer.meter.sample(self._now_ns)
-        return self._pacer.meter.recent()
-
     def __repr__(self) -> str:
         rtf = "None" if self._pacer.rtf is None else f"{self._pacer.rtf:g}"
         paused = " paused" if self._pacer.paused else ""
@@ -536,53 +513,14 @@ class SimDriver:
             "to start paused"
         )
 
-    def pause(self) -> None:
-        """Stop sim time from advancing; the loop and its I/O keep running."""
-        self._require_running("pause()")
-        self._pacer.pause()
-        self._step_until_ns = None
+    def _pacing_changed(self) -> None:
+        if self._pacer.run_until_ns is None:
+            self._step_until_ns = None  # pause() and resume() end a step_until()
         self._poke()
 
-    def resume(self) -> None:
-        """Let sim time advance again at the requested rtf."""
-        self._require_running("resume()")
-        self._pacer.resume()
-        self._step_until_ns = None
-        self._poke()
-
-    def step(self, count: int = 1) -> None:
-        """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
-        the next deadline on virtual time), then stay paused."""
-        self._require_running("step()")
-        if isinstance(count, bool) or not isinstance(count, int):
-            raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
-        if count < 1:
-            raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
-        self._pacer.step(count)
-        self._pacer.reanchor()  # pace the steps from now, not from before the pause
-        self._poke()
-
-    def step_until(self, when: Time) -> None:
-        """While paused, let sim time advance until it reaches ``when``, then stay paused.
-
-        Virtual time stops exactly at ``when``; physics at the first step boundary at or
-        after it.
-        """
-        self._require_running("step_until()")
-        if not isinstance(when, Time):
-            raise InvalidTypeError(f"step_until() needs a Time, got {type(when).__name__}")
-        if when.clock_type is not SIM:
-            raise ClockMismatchError(
-                f"step_until() needs a sim time, got a {when.clock_type.value} time"
-            )
-        if when.nanoseconds <= self._now_ns:
-            raise InvalidArgumentError(
-                f"step_until() target {when} is not after the current sim time {self.now()}"
-            )
-        self._pacer.run_until(when.nanoseconds)
-        self._step_until_ns = when.nanoseconds
-        self._pacer.reanchor()
-        heapq.heappush(self._heap, (when.nanoseconds, self._seq(), None))  # stop exactly there
+    def _stepping_until(self, when_ns: int) -> None:
+        self._step_until_ns = when_ns
+        heapq.heappush(self._heap, (when_ns, self._seq(), None))  # stop exactly there
         self._poke()
 
     def _extend_step_until(self, when_ns: int) -> None:

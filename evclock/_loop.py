@@ -44,7 +44,7 @@ from ._errors import (
     StallError,
 )
 from ._jumps import JumpHandle, TimeJump
-from ._pacing import DEFAULT_MAX_LAG, Pacer, check_max_lag, check_rtf
+from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
 from ._threads import busy_threads
 from ._time import SIM, Time
 from .sources import TimeSource, VirtualTimeSource
@@ -81,7 +81,7 @@ def _check_stall_timeout(value: object) -> float | None:
     return float(value)
 
 
-class SimEventLoop(asyncio.SelectorEventLoop):
+class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     """An asyncio event loop whose clock is simulation time.
 
     ``asyncio.sleep``, ``asyncio.timeout``, ``wait_for``, ``call_later``/``call_at`` and
@@ -572,28 +572,8 @@ class SimEventLoop(asyncio.SelectorEventLoop):
 
     # ------------------------------------------------------------ pacing API
 
-    @property
-    def rtf(self) -> float | None:
-        """Requested real-time factor (None: as fast as possible). Settable while running."""
-        return self._pacer.rtf
-
-    @rtf.setter
-    def rtf(self, value: float | None) -> None:
-        self._pacer.rtf = value
+    def _pacing_changed(self) -> None:
         self._update_fast_path()
-
-    @property
-    def paused(self) -> bool:
-        """Whether sim time is paused (tasks due at the current time still run)."""
-        return self._pacer.paused
-
-    def achieved_rtf(self) -> float | None:
-        """Real-time factor achieved over the last couple of wall seconds (None: not yet known).
-
-        Each call records a sample: poll it periodically (a progress bar, a dashboard).
-        """
-        self._pacer.meter.sample(self._now_ns)
-        return self._pacer.meter.recent()
 
     def _require_running(self, what: str) -> None:
         self._check_closed()
@@ -602,46 +582,6 @@ class SimEventLoop(asyncio.SelectorEventLoop):
                 f"{what} needs a running loop; call it from a task on the loop (or through "
                 "loop.call_soon_threadsafe), or create the loop with paused=True to start paused"
             )
-
-    def pause(self) -> None:
-        """Stop sim time from advancing; I/O keeps being served. Call from the loop's thread."""
-        self._require_running("pause()")
-        self._pacer.pause()
-        self._update_fast_path()
-
-    def resume(self) -> None:
-        """Let sim time advance again at the requested rtf."""
-        self._require_running("resume()")
-        self._pacer.resume()
-        self._update_fast_path()
-
-    def step(self, count: int = 1) -> None:
-        """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
-        the next deadline on virtual time), then stay paused."""
-        self._require_running("step()")
-        if isinstance(count, bool) or not isinstance(count, int):
-            raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
-        if count < 1:
-            raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
-        self._pacer.step(count)
-
-    def step_until(self, when: Time) -> None:
-        """While paused, let sim time advance until it reaches ``when``, then stay paused."""
-        self._require_running("step_until()")
-        if not isinstance(when, Time):
-            raise InvalidTypeError(f"step_until() needs a Time, got {type(when).__name__}")
-        if when.clock_type is not SIM:
-            from ._errors import ClockMismatchError
-
-            raise ClockMismatchError(
-                f"step_until() needs a sim time, got a {when.clock_type.value} time"
-            )
-        if when.nanoseconds <= self._now_ns:
-            raise InvalidArgumentError(
-                f"step_until() target {when} is not after the current sim time "
-                f"{Time._from_ns(self._now_ns, SIM)}"
-            )
-        self._pacer.run_until(when.nanoseconds)
 
     # ------------------------------------------------------------- jumps
 

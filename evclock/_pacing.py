@@ -7,7 +7,14 @@ import math
 import time
 from collections.abc import Callable
 
-from ._errors import InvalidArgumentError, InvalidTypeError, LagError, PacingError
+from ._errors import (
+    ClockMismatchError,
+    InvalidArgumentError,
+    InvalidTypeError,
+    LagError,
+    PacingError,
+)
+from ._time import SIM, Time
 
 #: How far behind its schedule a paced run may fall before it re-anchors instead of
 #: bursting to catch up (seconds of wall time).
@@ -111,6 +118,11 @@ class Pacer:
         self._update_idle()
 
     @property
+    def run_until_ns(self) -> int | None:
+        """The target of a pending ``step_until()``, if any."""
+        return self._run_until_ns
+
+    @property
     def rtf(self) -> float | None:
         """Requested real-time factor; None means as fast as possible."""
         return self._rtf
@@ -195,3 +207,90 @@ class Pacer:
         if stepping:
             self._step_budget -= 1
         return True
+
+
+class PacingControls:
+    """The pacing API shared by :class:`~evclock.SimEventLoop` and :class:`~evclock.SimDriver`:
+    ``rtf``, ``paused``, ``achieved_rtf()``, ``pause()``, ``resume()``, ``step()`` and
+    ``step_until()``. The host provides ``_pacer``, ``_now_ns``, ``_require_running()`` and
+    reacts to changes in ``_pacing_changed()``."""
+
+    _pacer: Pacer
+    _now_ns: int
+
+    def _require_running(self, what: str) -> None:
+        raise NotImplementedError
+
+    def _pacing_changed(self) -> None:
+        """Called after every change of rtf, pause state or step budget."""
+
+    def _stepping_until(self, when_ns: int) -> None:
+        """Called after ``step_until(when)``; by default a plain pacing change."""
+        self._pacing_changed()
+
+    @property
+    def rtf(self) -> float | None:
+        """Requested real-time factor (None: as fast as possible). Settable while running."""
+        return self._pacer.rtf
+
+    @rtf.setter
+    def rtf(self, value: float | None) -> None:
+        self._pacer.rtf = value
+        self._pacing_changed()
+
+    @property
+    def paused(self) -> bool:
+        """Whether sim time is paused (work due at the current time still runs)."""
+        return self._pacer.paused
+
+    def achieved_rtf(self) -> float | None:
+        """Real-time factor achieved over the last couple of wall seconds (None: not yet known).
+
+        Each call records a sample: poll it periodically (a progress bar, a dashboard).
+        """
+        self._pacer.meter.sample(self._now_ns)
+        return self._pacer.meter.recent()
+
+    def pause(self) -> None:
+        """Stop sim time from advancing; I/O keeps being served. Call from the loop's thread."""
+        self._require_running("pause()")
+        self._pacer.pause()
+        self._pacing_changed()
+
+    def resume(self) -> None:
+        """Let sim time advance again at the requested rtf."""
+        self._require_running("resume()")
+        self._pacer.resume()
+        self._pacing_changed()
+
+    def step(self, count: int = 1) -> None:
+        """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
+        the next deadline on virtual time), then stay paused."""
+        self._require_running("step()")
+        if isinstance(count, bool) or not isinstance(count, int):
+            raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
+        if count < 1:
+            raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
+        self._pacer.step(count)
+        self._pacing_changed()
+
+    def step_until(self, when: Time) -> None:
+        """While paused, let sim time advance until it reaches ``when``, then stay paused.
+
+        Virtual time stops exactly at ``when``; physics at the first step boundary at or
+        after it.
+        """
+        self._require_running("step_until()")
+        if not isinstance(when, Time):
+            raise InvalidTypeError(f"step_until() needs a Time, got {type(when).__name__}")
+        if when.clock_type is not SIM:
+            raise ClockMismatchError(
+                f"step_until() needs a sim time, got a {when.clock_type.value} time"
+            )
+        if when.nanoseconds <= self._now_ns:
+            raise InvalidArgumentError(
+                f"step_until() target {when} is not after the current sim time "
+                f"{Time._from_ns(self._now_ns, SIM)}"
+            )
+        self._pacer.run_until(when.nanoseconds)
+        self._stepping_until(when.nanoseconds)

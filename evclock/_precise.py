@@ -26,8 +26,9 @@ A precise wait never returns before the clock reads the deadline (it re-checks t
 after every wake-up), and always yields to the loop at least once.
 
 Timer slack: :func:`set_timer_slack` wraps Linux ``prctl(PR_SET_TIMERSLACK)`` (per
-thread). The timerfd path does not need it; :class:`TimerSlack` lowers it, opt-in, only
-while precise waits are pending on the loop's thread (it helps the fallback path on Linux).
+thread). timerfd expirations ignore it; :class:`TimerSlack` lowers it, opt-in
+(``WallClock(timer_slack=...)``), only while precise waits are pending on the loop's
+thread, for the fallback path (where the loop's millisecond rounding dominates anyway).
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ from typing import Final
 #: Waits longer than this go through the loop's own timer first, up to this close.
 COARSE_NS: Final = 5_000_000
 #: Default spin margin of :class:`evclock.WallClock` (see its docstring for the figures).
-DEFAULT_SPIN_MARGIN_NS: Final = 50_000
+DEFAULT_SPIN_MARGIN_NS: Final = 100_000
 
 CLOCK_REALTIME: Final = 0
 CLOCK_MONOTONIC: Final = 1
