@@ -161,7 +161,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         )
         if paused:
             self._pacer.pause()
-        self._jump_when_idle = False
+        self._advance_directly = self._jump_when_idle = False
         self._update_fast_path()
         self._holds = 0
         self._holds_lock = threading.Lock()
@@ -272,10 +272,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         heappop = heapq.heappop
         while True:
             if not ready and not self._stopping:
-                # Fast path: a pure jump to a live head entry when nothing else can matter
-                # (no I/O, no outside work, no other thread, no pacing). Else the full rule.
+                # Fast path when nothing else can matter (no pacing, no I/O, no outside work,
+                # no other thread): straight to a live head entry - a pure jump on virtual
+                # time, steps on a stepping source. Otherwise the full rule in _idle().
                 if (
-                    self._jump_when_idle
+                    self._advance_directly
                     and sched
                     and len(io_map) <= 1
                     and not self._holds
@@ -286,7 +287,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                         self._idle()
                     elif when > self._now_ns:
                         self._held_since = None
-                        self._now_ns = when
+                        self._now_ns = (
+                            when if self._jump_when_idle else self._source.advance(when, None)
+                        )
                 else:
                     self._idle()
             elif len(io_map) > 1:
@@ -294,11 +297,14 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             # Entries due now are taken before anything runs, so whatever the callbacks
             # below schedule for the same instant waits for the next iteration, as in asyncio.
             now = self._now_ns
-            batch = None
+            single = batch = None
             if sched and sched[0][0] <= now:
-                batch = [heappop(sched)]
-                while sched and sched[0][0] <= now:
-                    batch.append(heappop(sched))
+                single = heappop(sched)
+                if sched and sched[0][0] <= now:
+                    batch = [single]
+                    single = None
+                    while sched and sched[0][0] <= now:
+                        batch.append(heappop(sched))
             if ready:
                 debug = self._debug
                 for _ in range(len(ready)):
@@ -309,7 +315,28 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                         self._run_handle_debug(handle)
                     else:
                         handle._run()
-            if batch is not None:
+            if single is not None:
+                # One sleeper due alone - the common case - woken inline, like _fire does.
+                fut = single[3]
+                if (
+                    single[2] == _SLEEP
+                    and not fut.done()
+                    and (callbacks := fut._callbacks)
+                    and len(callbacks) == 1
+                    and not self._debug
+                ):
+                    callback, ctx = callbacks[0]
+                    fut.remove_done_callback(callback)
+                    fut.set_result(None)
+                    try:
+                        ctx.run(callback, fut)
+                    except (SystemExit, KeyboardInterrupt):
+                        raise
+                    except BaseException as exc:
+                        self._report_wakeup_error(exc)
+                else:
+                    self._fire([single])
+            elif batch is not None:
                 self._fire(batch)
             # Keep going without returning to run_forever() only in the plain case of
             # tasks sleeping in turn (the common case in simulation, and the hot path).
@@ -567,7 +594,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._release_hold_cb(None)
 
     def _update_fast_path(self) -> None:
-        # A discrete-event source with no pacing is advanced by the loop itself: a jump.
+        # Without pacing the loop may advance straight to the next deadline; a
+        # discrete-event source is then advanced by the loop itself: a jump.
+        self._advance_directly = self._pacer.idle
         self._jump_when_idle = self._source.discrete_event and self._pacer.idle
 
     # ------------------------------------------------------------ pacing API
