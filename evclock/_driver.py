@@ -16,10 +16,10 @@ The driver repeats one cycle:
    paced by :class:`~evclock._pacing.Pacer`; a pacing wait is an ``asyncio`` wait on the
    host loop, so I/O keeps flowing.
 
-A time source drives the driver as it drives a SimEventLoop: the driver offers the part of
-the loop interface sources use - ``now_ns``/``_now_ns``, ``_ready`` (truthy once a task became
-runnable), ``_jump_time(before, after, assign)``, ``is_closed()``, ``call_exception_handler()``
-and ``clock``.
+A time source is attached to the driver as it is to a SimEventLoop: the driver implements
+:class:`~evclock.sources.SourceHost` (``now_ns``/``_now_ns``, ``_ready`` - truthy once a task
+became runnable -, ``_jump_time()``, ``_runs_on()``, ``is_closed()``,
+``call_exception_handler()`` and ``clock``).
 
 Settling is how lockstep is approximated on a loop we cannot drive. On loops built on
 ``asyncio.BaseEventLoop`` the driver reads the loop's ready queue: it is settled when nothing
