@@ -45,6 +45,7 @@ from ._errors import (
 )
 from ._jumps import JumpHandle, TimeJump
 from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
+from ._tasks import describe_tasks
 from ._threads import busy_threads
 from ._time import SIM, Time
 from .sources import TimeSource, VirtualTimeSource
@@ -549,10 +550,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._poll_io(None if limit is None else max(limit - held, 0.0) + 1e-3)
 
     def _describe_waiting_tasks(self) -> tuple[str, ...]:
-        tasks = sorted(
-            (t for t in asyncio.all_tasks(self) if not t.done()), key=lambda t: t.get_name()
-        )
-        return tuple(_describe_task(t) for t in tasks)
+        return describe_tasks(self)
 
     # --------------------------------------------------- work outside the loop
 
@@ -660,27 +658,3 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             super().close()
         finally:
             self._source.close()
-
-
-def _describe_task(task: asyncio.Task[Any]) -> str:
-    """``name: outer() at file:line -> ... -> inner() at file:line, waiting on <future>``."""
-    coro: Any = task.get_coro()
-    frames = []
-    while coro is not None:
-        frame = getattr(coro, "cr_frame", None) or getattr(coro, "gi_frame", None)
-        if frame is not None:
-            code = frame.f_code
-            name = code.co_qualname.rpartition("<locals>.")[2]
-            frames.append(f"{name}() at {code.co_filename}:{frame.f_lineno}")
-        coro = getattr(coro, "cr_await", None) or getattr(coro, "gi_yieldfrom", None)
-        if not (hasattr(coro, "cr_frame") or hasattr(coro, "gi_frame")):
-            break
-    where = " -> ".join(frames)
-    waiter = getattr(task, "_fut_waiter", None)
-    waits_on = f", waiting on {_short(waiter)}" if waiter is not None else ""
-    return f"{task.get_name()}: {where or repr(task.get_coro())}{waits_on}"
-
-
-def _short(obj: object) -> str:
-    text = repr(obj)
-    return text if len(text) <= 120 else text[:117] + "..."
