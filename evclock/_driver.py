@@ -41,7 +41,7 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Final
+from typing import TYPE_CHECKING, Any, Final, TypeVar
 
 from . import _clock
 from ._clock import Clock, SimClock, _sleep_ns, attach_clock, detach_clock
@@ -62,6 +62,9 @@ from .sources import TimeSource, VirtualTimeSource
 
 if TYPE_CHECKING:
     _Entry = tuple[int, int, asyncio.Future[None] | None]
+
+#: A wait's future, or None for a bare stop mark (step_until's target).
+_MaybeFuture = TypeVar("_MaybeFuture", asyncio.Future[None], asyncio.Future[None] | None)
 
 #: Default bound of loop iterations the driver yields, after waking the tasks due at one sim
 #: time, for that work to settle before it advances sim time anyway.
@@ -609,21 +612,8 @@ class SimDriver(PacingControls):
             return min(heap[0][0], late[0][0]) if late else heap[0][0]
         return late[0][0] if late else None
 
-    def _fire_late(self) -> bool:
-        """Wake the run_until() waits due now (after the work due now has settled)."""
-        late = self._late
-        now = self._now_ns
-        fired = False
-        while late and late[0][0] <= now:
-            fut = heapq.heappop(late)[2]
-            if not fut.done():
-                fut.set_result(None)
-                fired = True
-        return fired
-
-    def _fire_due(self) -> bool:
-        """Wake every wait due at the current time, in deadline then FIFO order."""
-        heap = self._heap
+    def _wake(self, heap: list[tuple[int, int, _MaybeFuture]]) -> bool:
+        """Wake the waits of ``heap`` due at the current time, in deadline then FIFO order."""
         now = self._now_ns
         fired = False
         while heap and heap[0][0] <= now:
@@ -632,6 +622,14 @@ class SimDriver(PacingControls):
                 fut.set_result(None)
                 fired = True
         return fired
+
+    def _fire_late(self) -> bool:
+        """Wake the run_until() waits due now (after the work due now has settled)."""
+        return self._wake(self._late)
+
+    def _fire_due(self) -> bool:
+        """Wake every clock wait due at the current time."""
+        return self._wake(self._heap)
 
     def _poke(self) -> None:
         fut = self._poke_fut
