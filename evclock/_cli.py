@@ -95,6 +95,31 @@ def _loop_reports(clk: Clock) -> list[LoopReport]:
     return [LoopReport(rate.name, float(rate.hz), rate.stats.as_dict()) for rate in clk.rates]
 
 
+def _report(
+    scenario: Scenario,
+    mode: str,
+    clk: Clock,
+    finished: bool,
+    sim_s: float,
+    wall_s: float,
+    achieved_rtf: float | None,
+    summary: dict[str, Any],
+) -> RunReport:
+    return RunReport(
+        scenario=scenario.name,
+        seed=scenario.seed,
+        mode=mode,
+        success=scenario.success(),
+        finished=finished,
+        sim_time_s=sim_s,
+        wall_time_s=wall_s,
+        achieved_rtf=achieved_rtf,
+        summary=summary,
+        loops=_loop_reports(clk),
+        final_state=scenario.state_vector(),
+    )
+
+
 def _scenario_class(name: str) -> type[Scenario]:
     import sims
 
@@ -170,19 +195,8 @@ def _run_on_sim_time(
         sim_s = loop.time()
         if progress is not None and task_id is not None:
             progress.update(task_id, completed=min(sim_s, limit))
-        return RunReport(
-            scenario=cls.name,
-            seed=seed,
-            mode="sim",
-            success=scenario.success(),
-            finished=finished,
-            sim_time_s=sim_s,
-            wall_time_s=wall_s,
-            achieved_rtf=sim_s / wall_s if wall_s > 0 else None,
-            summary=scenario.summary(),
-            loops=_loop_reports(clk),
-            final_state=scenario.state_vector(),
-        )
+        achieved = sim_s / wall_s if wall_s > 0 else None
+        return _report(scenario, "sim", clk, finished, sim_s, wall_s, achieved, scenario.summary())
 
     return evclock_run(main(), source=source, rtf=rtf)
 
@@ -220,19 +234,7 @@ def _run_on_wall_time(
             summary = scenario.summary()
             if scenario.finished_at is not None:
                 summary["mission_time_s"] = scenario.finished_at - start
-            return RunReport(
-                scenario=cls.name,
-                seed=seed,
-                mode="wall",
-                success=scenario.success(),
-                finished=finished,
-                sim_time_s=wall_s,
-                wall_time_s=wall_s,
-                achieved_rtf=1.0,
-                summary=summary,
-                loops=_loop_reports(clk),
-                final_state=scenario.state_vector(),
-            )
+            return _report(scenario, "wall", clk, finished, wall_s, wall_s, 1.0, summary)
 
         wall0 = time.perf_counter()
         return evclock_run(main(), use_sim_time=False)
