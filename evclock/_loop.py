@@ -46,7 +46,7 @@ from ._errors import (
 from ._jumps import JumpHandle, TimeJump
 from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
 from ._tasks import describe_tasks
-from ._threads import busy_threads
+from ._threads import busy_threads, could_call_back
 from ._time import SIM, Time
 from .sources import TimeSource, VirtualTimeSource
 
@@ -497,7 +497,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _wait_io(self, timeout: float | None) -> bool:
         """Pacing/pause wait: block up to ``timeout`` serving I/O; True if work is ready."""
-        if timeout is None and len(self._io_map) <= 1 and self._only_daemons():
+        if timeout is None and len(self._io_map) <= 1 and not could_call_back(self._thread_id):
             raise DeadlockError(
                 "the loop is paused and nothing could ever resume it: no I/O is "
                 "registered and no other thread runs; call resume() or step() from a "

@@ -204,10 +204,12 @@ class Rate:
             try:
                 await clock._sleep_until_ns(deadline)
             except ClockJumped:
-                now = clock.now_ns()
-                self._start, self._index = now, 0
-                return self._tick(0, now, now, 0)
-            return self._tick(index, deadline, clock.now_ns(), 0)
+                return self._reanchor()
+            now = clock.now_ns()
+            if now < deadline:
+                # Woken as due, then the clock jumped back before this task ran.
+                return self._reanchor()
+            return self._tick(index, deadline, now, 0)
         passed = (now - self._start) * self._den // self._num  # last deadline index <= now
         if self._policy == "catch_up":
             return self._tick(index, deadline, now, 0)
@@ -216,6 +218,12 @@ class Rate:
         tick = self._tick(index, deadline, now, passed - index)
         self._start, self._index = now, 0
         return tick
+
+    def _reanchor(self) -> Tick:
+        """After a clock jump: restart the schedule at the current time with tick 0."""
+        now = self._clock.now_ns()
+        self._start, self._index = now, 0
+        return self._tick(0, now, now, 0)
 
     def _tick(self, index: int, expected: int, actual: int, missed: int) -> Tick:
         self._index = index
@@ -292,6 +300,9 @@ class Timer:
                 start, index = clock.now_ns(), 1
                 continue
             now = clock.now_ns()
+            if now < deadline:  # woken as due, then the clock jumped back: re-anchor
+                start, index = now, 1
+                continue
             self.stats.record(now - deadline, 0)
             try:
                 result = self._callback()

@@ -10,7 +10,8 @@ anyio worker threads) by looking at what each thread is doing right now:
   so it is idle; once notified (its waiter lock released) it counts as busy again;
 * an idle ``concurrent.futures`` worker (blocked on an empty work queue) is idle;
 * a thread blocked in ``Thread.join`` waits for another thread, which is judged on its own;
-* daemon threads are ignored (they are background services by convention);
+* daemon threads are ignored here (background services by convention): they never hold
+  sim time, though they may still call the loop back (resume a paused loop);
 * anything else - computing, sleeping, blocked on a socket - is busy.
 
 Inspection happens under the GIL on a snapshot of every thread's innermost frame, and the
@@ -23,6 +24,7 @@ from __future__ import annotations
 import concurrent.futures.thread as _cf_thread
 import sys
 import threading
+import weakref
 from types import CodeType, FrameType
 
 _CONDITION_WAIT: CodeType = threading.Condition.wait.__code__
@@ -62,3 +64,21 @@ def busy_threads(loop_thread_id: int | None) -> list[threading.Thread]:
         if frame is None or not _is_parked(frame):
             busy.append(thread)
     return busy
+
+
+#: evclock's own helper threads (the pytest plugin's watchdog): they never call the loop back.
+_internal: weakref.WeakSet[threading.Thread] = weakref.WeakSet()
+
+
+def mark_internal(thread: threading.Thread) -> None:
+    """Declare ``thread`` one of evclock's helpers: it can neither hold nor resume sim time."""
+    _internal.add(thread)
+
+
+def could_call_back(loop_thread_id: int | None) -> bool:
+    """Whether any other live thread (daemon or not, evclock's helpers aside) might still call
+    the loop back, e.g. resume it while it is paused."""
+    return any(
+        t.ident != loop_thread_id and t not in _internal and t.is_alive()
+        for t in threading.enumerate()
+    )

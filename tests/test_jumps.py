@@ -148,3 +148,33 @@ def test_on_jump_needs_a_callback() -> None:
         match=r"^on_jump\(\) needs a pre or a post callback \(or both\)$",
     ):
         evclock.run(main())
+
+
+def test_a_tick_due_at_the_instant_of_a_backward_jump_re_anchors() -> None:
+    async def main() -> list[tuple[int, int, int]]:
+        clock = evclock.clock()
+        ticks: list[tuple[int, int, int]] = []
+
+        async def jumper() -> None:
+            await clock.sleep(2)  # due at the same instant as the rate's tick 2
+            source().set_time(500_000_000)
+
+        jumping = asyncio.create_task(jumper())
+        await asyncio.sleep(0)
+        async for tick in clock.rate(1):
+            ticks.append((tick.index, tick.expected_ns, tick.actual_ns))
+            if len(ticks) == 4:
+                break
+        await jumping
+        return ticks
+
+    ticks = evclock.run(main())
+    # Tick 2 was already due when time jumped back to 0.5 s: the schedule restarts there
+    # instead of delivering a tick whose actual time precedes its deadline.
+    assert ticks == [
+        (0, 0, 0),
+        (1, 10**9, 10**9),
+        (0, 5 * 10**8, 5 * 10**8),
+        (1, 15 * 10**8, 15 * 10**8),
+    ]
+    assert all(actual >= expected for _, expected, actual in ticks)

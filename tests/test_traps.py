@@ -14,6 +14,7 @@ import anyio.to_thread
 import pytest
 
 import evclock
+from evclock import _threads
 
 # --------------------------------------------------------------------------- FIFO ties
 
@@ -254,17 +255,36 @@ def test_raw_socket_pair_reader_callback() -> None:
     assert evclock.run(main()) == b"ping"
 
 
-def test_idle_daemon_threads_neither_hold_time_nor_hide_a_paused_deadlock() -> None:
+def test_daemon_threads_do_not_hold_time_but_may_resume_a_paused_loop() -> None:
+    async def main() -> tuple[float, float]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        stop = threading.Event()
+        idle = threading.Thread(target=stop.wait, daemon=True)  # a background service
+        idle.start()
+        await asyncio.sleep(5)  # the idle daemon does not hold time
+        advanced_to = loop.time()
+
+        def operator() -> None:  # a daemon control thread, like a GUI or a web server
+            time.sleep(0.02)
+            loop.call_soon_threadsafe(loop.resume)
+
+        loop.pause()
+        threading.Thread(target=operator, daemon=True).start()
+        await asyncio.sleep(1)  # paused: only the operator can let this finish
+        stop.set()
+        idle.join()
+        return advanced_to, loop.time()
+
+    assert evclock.run(main()) == (5.0, 6.0)
+
+
+def test_evclock_helper_threads_do_not_hide_a_paused_deadlock() -> None:
     stop = threading.Event()
-    background = threading.Thread(target=stop.wait, daemon=True)  # a background service
-    background.start()
+    helper = threading.Thread(target=stop.wait, daemon=True)
+    _threads.mark_internal(helper)  # like the pytest plugin's watchdog
+    helper.start()
     try:
-
-        async def sleeps() -> float:
-            await asyncio.sleep(5)
-            return asyncio.get_running_loop().time()
-
-        assert evclock.run(sleeps()) == 5.0
 
         async def paused_forever() -> None:
             loop = asyncio.get_running_loop()
@@ -276,4 +296,4 @@ def test_idle_daemon_threads_neither_hold_time_nor_hide_a_paused_deadlock() -> N
             evclock.run(paused_forever())
     finally:
         stop.set()
-        background.join()
+        helper.join()

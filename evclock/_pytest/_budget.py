@@ -14,6 +14,7 @@ from types import FrameType
 from typing import TYPE_CHECKING, Any, Final
 
 from .._errors import EvClockError
+from .._threads import mark_internal
 from ._describe import describe_tasks, format_stack
 
 if TYPE_CHECKING:
@@ -121,6 +122,7 @@ class Budget:
         self._thread = threading.Thread(
             target=self._watch, name=f"evclock-budget[{state.item.name}]", daemon=True
         )
+        mark_internal(self._thread)  # it never resumes a paused test's loop
         self._thread.start()
 
     def enter_call(self, call: CallGuard) -> None:
