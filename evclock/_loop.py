@@ -317,24 +317,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                     else:
                         handle._run()
             if single is not None:
-                # One sleeper due alone - the common case - woken inline, like _fire does.
-                fut = single[3]
-                if (
-                    single[2] == _SLEEP
-                    and not fut.done()
-                    and (callbacks := fut._callbacks)
-                    and len(callbacks) == 1
-                    and not self._debug
-                ):
-                    callback, ctx = callbacks[0]
-                    fut.remove_done_callback(callback)
-                    fut.set_result(None)
-                    try:
-                        ctx.run(callback, fut)
-                    except (SystemExit, KeyboardInterrupt):
-                        raise
-                    except BaseException as exc:
-                        self._report_wakeup_error(exc)
+                # One entry due alone - the common case - without building a batch.
+                if single[2] == _SLEEP:
+                    if not single[3].done():
+                        self._wake(single[3], None)
                 else:
                     self._fire([single])
             elif batch is not None:
@@ -385,31 +371,35 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 fut, result = obj._args  # asyncio.sleep(): resolve its future the same way
                 if fut.done():
                     continue
-            callbacks = fut._callbacks
-            if not callbacks:
-                fut.set_result(result)
-                continue
-            if len(callbacks) == 1:  # the sleeping task's wake-up: the usual case
-                callback, ctx = callbacks[0]
-                fut.remove_done_callback(callback)
-                fut.set_result(result)
-                try:
-                    ctx.run(callback, fut)
-                except (SystemExit, KeyboardInterrupt):
-                    raise
-                except BaseException as exc:
-                    self._report_wakeup_error(exc)
-                continue
-            for callback, _ctx in callbacks:
-                fut.remove_done_callback(callback)
+            self._wake(fut, result)
+
+    def _wake(self, fut: asyncio.Future[Any], result: object) -> None:
+        """Resolve a sleep's future and run its waiters' wake-ups in place (no Handle hop)."""
+        callbacks = fut._callbacks
+        if not callbacks:
             fut.set_result(result)
-            for callback, ctx in callbacks:
-                try:
-                    ctx.run(callback, fut)
-                except (SystemExit, KeyboardInterrupt):
-                    raise
-                except BaseException as exc:
-                    self._report_wakeup_error(exc)
+            return
+        if len(callbacks) == 1:  # the sleeping task's own wake-up: the usual case
+            callback, ctx = callbacks[0]
+            fut.remove_done_callback(callback)
+            fut.set_result(result)
+            try:
+                ctx.run(callback, fut)
+            except (SystemExit, KeyboardInterrupt):
+                raise
+            except BaseException as exc:
+                self._report_wakeup_error(exc)
+            return
+        for callback, _ctx in callbacks:
+            fut.remove_done_callback(callback)
+        fut.set_result(result)
+        for callback, ctx in callbacks:
+            try:
+                ctx.run(callback, fut)
+            except (SystemExit, KeyboardInterrupt):
+                raise
+            except BaseException as exc:
+                self._report_wakeup_error(exc)
 
     def _report_wakeup_error(self, exc: BaseException) -> None:
         self.call_exception_handler(
