@@ -29,7 +29,7 @@ from ._pacing import check_rtf
 from ._runner import run as evclock_run
 
 if TYPE_CHECKING:
-    from sims import Scenario
+    from evclock_sims import Scenario
 
 PHYSICS_HZ = 240
 _PROGRESS_PERIOD = 0.05  # sim seconds between progress refreshes
@@ -121,12 +121,13 @@ def _report(
 
 
 def _scenario_class(name: str) -> type[Scenario]:
-    import sims
+    import evclock_sims as sims
 
     try:
-        return sims.get_scenario(name)
+        cls: type[Scenario] = sims.get_scenario(name)
     except ValueError as exc:
         raise InvalidArgumentError(str(exc)) from None
+    return cls
 
 
 def run_scenario(
@@ -283,7 +284,7 @@ def render_report(report: RunReport, console: Console) -> None:
 @app.command("list")
 def list_scenarios() -> None:
     """List the scenarios in sims/."""
-    import sims
+    import evclock_sims as sims
 
     table = Table(title="scenarios")
     table.add_column("name")

@@ -22,8 +22,7 @@ from typing import Any
 
 import pybullet as p
 import pytest
-
-from sims import PHYSICS_HZ, SCENARIOS, ClockLike, get_scenario
+from evclock_sims import PHYSICS_HZ, SCENARIOS, ClockLike, get_scenario
 
 NS_PER_S = 1_000_000_000
 

@@ -10,8 +10,7 @@ import logging
 import math
 
 import uvicorn
-
-from sims import SCENARIOS
+from evclock_sims import SCENARIOS
 
 from .app import create_app
 from .config import DashboardConfig

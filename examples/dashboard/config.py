@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from sims import get_scenario
+from evclock_sims import get_scenario
 
 
 @dataclasses.dataclass(frozen=True, slots=True)

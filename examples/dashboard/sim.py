@@ -19,9 +19,9 @@ from types import TracebackType
 from typing import Any, cast
 
 import pybullet as p
+from evclock_sims import Scenario, get_scenario
 
 from evclock import PyBulletTimeSource, Rate, SimDriver
-from sims import Scenario, get_scenario
 
 from .config import DashboardConfig
 
