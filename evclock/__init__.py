@@ -5,14 +5,17 @@ timeouts and anyio all follow sim time, time advances only when every task waits
 same controller code runs unchanged on wall time on the real robot.
 """
 
+from ._buffer import Interpolation, TimeBuffer
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
 from ._config import ENV_USE_SIM_TIME
+from ._diagnostics import StampDiagnostics, StampWarning, StreamAgeStats, diagnostics_report
 from ._driver import SimDriver
 from ._errors import (
     ClockJumped,
     ClockMismatchError,
     DeadlockError,
     EvClockError,
+    ExtrapolationError,
     InvalidArgumentError,
     InvalidTypeError,
     LagError,
@@ -24,11 +27,14 @@ from ._errors import (
     SimDriverError,
     SimTimeLimitError,
     StallError,
+    TimeLookupError,
 )
 from ._jumps import JumpHandle, JumpThreshold, TimeJump
 from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
 from ._runner import loop_factory, resolve_use_sim_time, run
+from ._stamped import Stamped, StampKey, stamp_of
+from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
 
@@ -75,6 +81,19 @@ __all__ = [
     "Timer",
     "VirtualTimeSource",
     "WallClock",
+    "ApproximateTimeSynchronizer",
+    "ExtrapolationError",
+    "Interpolation",
+    "StampDiagnostics",
+    "StampKey",
+    "StampWarning",
+    "Stamped",
+    "StreamAgeStats",
+    "TimeBuffer",
+    "TimeLookupError",
+    "TimeSynchronizer",
+    "diagnostics_report",
+    "stamp_of",
     "__version__",
     "clock",
     "loop_factory",

@@ -87,3 +87,11 @@ class PhysicsError(EvClockError, RuntimeError):
 
 class SimTimeLimitError(EvClockError):
     """A run or a test exceeded its sim-time limit."""
+
+
+class TimeLookupError(EvClockError, LookupError):
+    """A time-indexed lookup found nothing: an empty buffer, no sample stamped exactly t."""
+
+
+class ExtrapolationError(TimeLookupError):
+    """A buffer lookup lies further outside the kept samples than ``max_extrapolation``."""
