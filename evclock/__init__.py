@@ -33,7 +33,7 @@ from ._jumps import JumpHandle, JumpThreshold, TimeJump
 from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
 from ._runner import loop_factory, resolve_use_sim_time, run
-from ._stamped import Stamped, StampKey, stamp_of
+from ._stamped import StampClock, Stamped, StampKey, stamp_of
 from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
@@ -84,6 +84,7 @@ __all__ = [
     "ApproximateTimeSynchronizer",
     "ExtrapolationError",
     "Interpolation",
+    "StampClock",
     "StampDiagnostics",
     "StampKey",
     "StampWarning",

@@ -29,9 +29,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from ._clock import Clock
 from ._clock import clock as running_clock
 from ._errors import InvalidArgumentError, InvalidTypeError
+from ._stamped import StampClock, check_stamp_clock
 from ._time import Duration, Time, to_nonnegative_nanoseconds
 
 __all__ = [
@@ -105,7 +105,7 @@ class StampDiagnostics:
         self,
         name: str = "stamps",
         *,
-        clock: Clock | None = None,
+        clock: StampClock | None = None,
         stale_after: float | Duration | None = None,
         future_tolerance: float | Duration = 0,
         max_queue: int | None = None,
@@ -114,10 +114,8 @@ class StampDiagnostics:
     ) -> None:
         if not isinstance(name, str) or not name:
             raise InvalidArgumentError(f"name must be a non-empty string, got {name!r}")
-        if clock is not None and not isinstance(clock, Clock):
-            raise InvalidTypeError(
-                f"clock must be an evclock Clock (e.g. evclock.clock()), got {type(clock).__name__}"
-            )
+        if clock is not None:
+            check_stamp_clock(clock)
         self.name = name
         self._clock = clock
         self._stale_ns = (
@@ -161,7 +159,7 @@ class StampDiagnostics:
         return self._clock.now()
 
     @property
-    def clock(self) -> Clock | None:
+    def clock(self) -> StampClock | None:
         """The clock ages are measured on (None until the first observation if not given)."""
         return self._clock
 

@@ -20,17 +20,46 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Generic, TypeVar
+from typing import Any, Generic, Protocol, TypeVar
 
 from ._errors import ClockMismatchError, InvalidTypeError
 from ._time import ClockType, Time
 
-__all__ = ["StampKey", "Stamped", "stamp_of"]
+__all__ = ["StampClock", "StampKey", "Stamped", "check_stamp_clock", "stamp_of"]
 
 T = TypeVar("T")
 
 StampKey = Callable[[Any], object]
 """A function returning a message's stamp: a :class:`Time` or a ``sec``/``nanosec`` object."""
+
+
+class StampClock(Protocol):
+    """What stamp consumers need from a clock: its domain and ``now()``.
+
+    Every evclock :class:`~evclock.Clock` is one; so is a small adapter around another
+    simulator's or framework's clock.
+    """
+
+    @property
+    def clock_type(self) -> ClockType:
+        """The clock domain stamps are read in."""
+        ...
+
+    def now(self) -> Time:
+        """The current time, a :class:`Time` of ``clock_type``."""
+        ...
+
+
+def check_stamp_clock(clock: object) -> None:
+    """Raise :class:`InvalidTypeError` unless ``clock`` has a ``clock_type`` and ``now()``."""
+    if not (
+        isinstance(getattr(clock, "clock_type", None), ClockType)
+        and callable(getattr(clock, "now", None))
+    ):
+        raise InvalidTypeError(
+            f"clock must be an evclock Clock (e.g. evclock.clock()) or have a clock_type "
+            f"(ClockType) and now() returning a Time, got {type(clock).__name__}"
+        )
 
 
 @dataclass(frozen=True, slots=True)

@@ -17,11 +17,10 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from ._clock import Clock
 from ._clock import clock as running_clock
 from ._diagnostics import StampDiagnostics
 from ._errors import InvalidArgumentError, InvalidTypeError
-from ._stamped import StampKey, stamp_of
+from ._stamped import StampClock, StampKey, check_stamp_clock, stamp_of
 from ._sync_policies import ApproximatePolicy, ExactPolicy, Group, SlopPolicy
 from ._time import Duration, to_nonnegative_nanoseconds
 
@@ -70,7 +69,7 @@ class _Synchronizer:
         streams: int | Sequence[str],
         queue_size: int,
         *,
-        clock: Clock | None,
+        clock: StampClock | None,
         key: StampKey | None,
         callback: Callable[..., object] | None,
         max_pending: int,
@@ -80,10 +79,8 @@ class _Synchronizer:
         self._names = _stream_names(streams)
         self._index = {stream: i for i, stream in enumerate(self._names)}
         self.queue_size = _positive_int(queue_size, "queue_size")
-        if clock is not None and not isinstance(clock, Clock):
-            raise InvalidTypeError(
-                f"clock must be an evclock Clock (e.g. evclock.clock()), got {type(clock).__name__}"
-            )
+        if clock is not None:
+            check_stamp_clock(clock)
         if key is not None and not callable(key):
             raise InvalidTypeError(f"key must be callable, got {type(key).__name__}")
         if callback is not None and not callable(callback):
@@ -144,7 +141,7 @@ class _Synchronizer:
         return stream
 
     @property
-    def clock(self) -> Clock:
+    def clock(self) -> StampClock:
         """The clock whose domain stamps are read in (``evclock.clock()`` if not given)."""
         if self._clock is None:
             self._clock = running_clock()
@@ -303,7 +300,7 @@ class TimeSynchronizer(_Synchronizer):
         streams: int | Sequence[str],
         queue_size: int = 10,
         *,
-        clock: Clock | None = None,
+        clock: StampClock | None = None,
         key: StampKey | None = None,
         callback: Callable[..., object] | None = None,
         max_pending: int = 100,
@@ -358,7 +355,7 @@ class ApproximateTimeSynchronizer(_Synchronizer):
         max_interval: float | Duration | None = None,
         age_penalty: float = 0.0,
         lower_bounds: Sequence[float | Duration] | None = None,
-        clock: Clock | None = None,
+        clock: StampClock | None = None,
         key: StampKey | None = None,
         callback: Callable[..., object] | None = None,
         max_pending: int = 100,
