@@ -23,6 +23,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ._clock import Clock, clock
+from ._diagnostics import diagnostics_report, render_diagnostics_report
 from ._errors import EvClockError, InvalidArgumentError
 from ._loop import SimEventLoop
 from ._pacing import check_rtf
@@ -65,6 +66,8 @@ class RunReport:
     summary: dict[str, Any]
     loops: list[LoopReport]
     final_state: list[float]
+    stamps: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    """Stamp diagnostics the scenario used (see evclock._diagnostics), if any."""
 
     def to_json(self) -> dict[str, Any]:
         data = dataclasses.asdict(self)
@@ -117,6 +120,7 @@ def _report(
         summary=summary,
         loops=_loop_reports(clk),
         final_state=scenario.state_vector(),
+        stamps=diagnostics_report(),
     )
 
 
@@ -267,6 +271,7 @@ def render_report(report: RunReport, console: Console) -> None:
             _ms(s["max_lateness_s"]),
         )
     console.print(table)
+    render_diagnostics_report(report.stamps, console)
     summary = Table(title="summary", show_header=False)
     summary.add_column("metric")
     summary.add_column("value", justify="right")

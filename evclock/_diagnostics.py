@@ -326,11 +326,14 @@ def render_diagnostics_report(reports: list[dict[str, Any]], console: Any) -> No
                 str(s["stale"]),
                 str(s["future"]),
             )
-        for consumer, q in report["queues"].items():
-            table.add_row(
-                f"{consumer} (queue)", "-", "-", "-", f"depth max {q['max_depth']}", "-", "-"
-            )
         console.print(table)
+        if report["queues"]:
+            queues = Table(title=f"{report['name']}: consumer queues")
+            for column in ("consumer", "depth", "max depth", "above max_queue"):
+                queues.add_column(column, justify="left" if column == "consumer" else "right")
+            for consumer, q in report["queues"].items():
+                queues.add_row(consumer, str(q["depth"]), str(q["max_depth"]), str(q["behind"]))
+            console.print(queues)
         for line in report["warnings"]:
             console.print(f"[yellow]warning[/yellow] {line}")
 

@@ -13,10 +13,13 @@ from __future__ import annotations
 
 from ._base import PHYSICS_HZ, ClockLike, Scenario, TickLike, TimeLike
 from .cartpole import CartPole
+from .fusion import LandmarkFusion
 from .husky import HuskyPatrol
 from .kuka import KukaReach
 
-SCENARIOS: dict[str, type[Scenario]] = {cls.name: cls for cls in (KukaReach, HuskyPatrol, CartPole)}
+SCENARIOS: dict[str, type[Scenario]] = {
+    cls.name: cls for cls in (KukaReach, HuskyPatrol, CartPole, LandmarkFusion)
+}
 """Every scenario class by its ``name``."""
 
 
@@ -36,6 +39,7 @@ __all__ = [
     "ClockLike",
     "HuskyPatrol",
     "KukaReach",
+    "LandmarkFusion",
     "Scenario",
     "TickLike",
     "TimeLike",

@@ -47,7 +47,10 @@ def test_run_stops_at_until_and_reports_failure() -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["run", "nope"], "error: unknown scenario 'nope'; valid names: kuka, husky, cartpole"),
+        (
+            ["run", "nope"],
+            "error: unknown scenario 'nope'; valid names: kuka, husky, cartpole, fusion",
+        ),
         (["run", "kuka", "--rtf", "0"], "error: --rtf takes 'max' (as fast as possible) or a"),
         (["run", "kuka", "--rtf", "fast"], "error: --rtf takes 'max' (as fast as possible) or a"),
         (["run", "kuka", "--wall", "--rtf", "2"], "error: --wall runs in real time: drop --rtf"),

@@ -30,6 +30,7 @@ RATES: dict[str, dict[str, float]] = {
     "kuka": {"joint_control": 100.0, "planner": 10.0},
     "husky": {"drive": 50.0, "lidar": 20.0},
     "cartpole": {"balance": 50.0, "monitor": 240.0},
+    "fusion": {"odometry": 50.0, "camera": 15.0, "drive": 50.0},
 }
 """The named rate loops each scenario must run, and their rates."""
 
@@ -214,9 +215,9 @@ def test_step_clock_is_a_clocklike() -> None:
 
 def test_registry() -> None:
     """Every scenario is registered under its name; unknown names list the valid ones."""
-    assert list(SCENARIOS) == ["kuka", "husky", "cartpole"]
+    assert list(SCENARIOS) == ["kuka", "husky", "cartpole", "fusion"]
     assert all(get_scenario(name).name == name for name in SCENARIOS)
-    with pytest.raises(ValueError, match="valid names: kuka, husky, cartpole"):
+    with pytest.raises(ValueError, match="valid names: kuka, husky, cartpole, fusion"):
         get_scenario("segway")
 
 
