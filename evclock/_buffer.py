@@ -298,8 +298,10 @@ class TimeBuffer:
 
     def _check_range(self, ts: npt.NDArray[np.int64], stamps: npt.NDArray[np.int64]) -> None:
         oldest, newest = int(stamps[0]), int(stamps[-1])
-        beyond = np.maximum(oldest - ts, ts - newest)
         limit = self.max_extrapolation.nanoseconds
+        if int(ts.min()) >= oldest - limit and int(ts.max()) <= newest + limit:
+            return
+        beyond = np.maximum(oldest - ts, ts - newest)
         if (beyond > limit).any():
             worst = int(ts[np.argmax(beyond > limit)])
             side = (
