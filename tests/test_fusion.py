@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -77,3 +78,24 @@ def test_fusion_is_deterministic_and_seeded() -> None:
     assert first.final_state == again.final_state
     assert first.summary == again.summary
     assert run_scenario("fusion", seed=3).final_state != first.final_state
+
+
+def test_readme_snippet_runs_as_written() -> None:
+    text = (ROOT / "README.md").read_text()
+    section = text[text.index("## Stamped data and sensor synchronisation") :]
+    match = re.search(r"```python\n(.*?)```", section, re.S)
+    assert match is not None
+    proc = subprocess.run(
+        [sys.executable, "-c", match.group(1)],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [
+        "frame 0 scan [0. 0.]",
+        "frame 1 scan [0.1 0. ]",
+        "frame 2 scan [0.2 0. ]",
+        "frame 3 scan [0.3 0. ]",
+    ]
