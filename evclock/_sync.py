@@ -150,6 +150,9 @@ class _Synchronizer:
     def add(self, stream: int | str, message: object) -> None:
         """Offer ``message`` on ``stream`` (a name or an index); may emit groups.
 
+        Call it on the loop's thread (from another thread, hand it over with
+        ``loop.call_soon_threadsafe(sync.add, stream, message)``).
+
         Raises:
             ClockMismatchError: the message's stamp is a :class:`Time` of another domain.
             InvalidTypeError: no stamp can be read from the message (see ``stamp_of``).

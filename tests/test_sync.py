@@ -291,3 +291,18 @@ def test_async_callbacks_and_bad_streams_are_rejected() -> None:
         sync.add("lidar", Stamped(Time(0, clock_type=STEADY), 0))
     with pytest.raises(InvalidArgumentError, match=r"stream index 2 out of range"):
         sync.input(2)
+
+
+def test_a_stream_that_never_matches_keeps_memory_bounded_and_counts_drops() -> None:
+    for sync in (
+        ApproximateTimeSynchronizer(["camera", "imu"], queue_size=8, clock=WallClock(STEADY)),
+        ApproximateTimeSynchronizer(
+            ["camera", "imu"], queue_size=8, slop=0.01, clock=WallClock(STEADY)
+        ),
+        TimeSynchronizer(["camera", "imu"], queue_size=8, clock=WallClock(STEADY)),
+    ):
+        for k in range(10_000):
+            sync.add("camera", Stamped(Time(0, k * 1_000_000, STEADY), k))
+            assert sync.stats()["held"] <= 8
+        assert sync.dropped == {"camera": 9_992, "imu": 0}
+        assert sync.stats()["streams"]["camera"]["received"] == 10_000
