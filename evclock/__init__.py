@@ -5,7 +5,8 @@ timeouts and anyio all follow sim time, time advances only when every task waits
 same controller code runs unchanged on wall time on the real robot.
 """
 
-from ._buffer import Interpolation, TimeBuffer
+from typing import TYPE_CHECKING, Any
+
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
 from ._config import ENV_USE_SIM_TIME
 from ._diagnostics import StampDiagnostics, StampWarning, StreamAgeStats, diagnostics_report
@@ -37,6 +38,9 @@ from ._stamped import StampClock, Stamped, StampKey, stamp_of
 from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
+
+if TYPE_CHECKING:
+    from ._buffer import Interpolation, TimeBuffer
 
 __version__ = "0.1.0"
 
@@ -102,3 +106,12 @@ __all__ = [
     "run",
     "sim_clock",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    # TimeBuffer needs numpy: it is imported on first use, so `import evclock` stays light.
+    if name in ("Interpolation", "TimeBuffer"):
+        from . import _buffer
+
+        return getattr(_buffer, name)
+    raise AttributeError(f"module 'evclock' has no attribute {name!r}")

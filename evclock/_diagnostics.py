@@ -27,8 +27,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
-import numpy as np
-
 from ._clock import clock as running_clock
 from ._errors import InvalidArgumentError, InvalidTypeError
 from ._stamped import StampClock, check_stamp_clock
@@ -268,11 +266,15 @@ class StampDiagnostics:
             )
         if not (isinstance(q, int | float) and 0 <= q <= 100):
             raise InvalidArgumentError(f"q must be a number in [0, 100], got {q!r}")
-        value = np.percentile(np.fromiter(recent, dtype=np.int64), q, method="higher")
-        return Duration._from_ns(int(value))
+        ordered = sorted(recent)
+        return Duration._from_ns(ordered[math.ceil(q / 100 * (len(ordered) - 1))])
 
     def as_dict(self) -> dict[str, Any]:
-        """Plain numbers (seconds) for reports and JSON."""
+        """Plain numbers (seconds) for reports and JSON.
+
+        ``queues`` gives per consumer the current and maximum depth and ``behind``, how many
+        observations found it above ``max_queue``.
+        """
         streams = {
             name: {
                 "messages": s.count,
