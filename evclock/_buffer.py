@@ -218,10 +218,36 @@ class TimeBuffer:
                 f"{self.name}: t must be an evclock.Time, got {type(t).__name__}"
             )
         self._check_domain(t, "lookup time")
-        result: npt.NDArray[np.float64] = self._lookup(
-            np.array([t.nanoseconds], dtype=np.int64), method
-        )[0]
-        return result
+        method = self.interpolation if method is None else method
+        if method == "slerp":
+            result: npt.NDArray[np.float64] = self._lookup(
+                np.array([t.nanoseconds], dtype=np.int64), method
+            )[0]
+            return result
+        # One time: the same rules as _lookup, with Python scalars instead of numpy arrays.
+        self._check_method(method)
+        stamps, values = self._kept()
+        ns, n = t.nanoseconds, len(stamps)
+        limit = self.max_extrapolation.nanoseconds
+        if not int(stamps[0]) - limit <= ns <= int(stamps[-1]) + limit:
+            self._check_range(np.array([ns], dtype=np.int64), stamps)
+        after = int(stamps.searchsorted(ns, side="right"))
+        before = max(after - 1, 0)
+        if method == "exact" and stamps[before] != ns:
+            raise self._no_exact_sample(ns)
+        if method in ("exact", "previous"):
+            return _row(values, before)
+        if method == "nearest":
+            later = min(after, n - 1)
+            return _row(values, later if stamps[later] - ns < ns - stamps[before] else before)
+        if n == 1:
+            return _row(values, 0)
+        i0 = min(before, n - 2)
+        s0, s1 = int(stamps[i0]), int(stamps[i0 + 1])
+        linear: npt.NDArray[np.float64] = values[i0] + (ns - s0) / (s1 - s0) * (
+            values[i0 + 1] - values[i0]
+        )
+        return linear
 
     def at_many(
         self, times: npt.ArrayLike | Sequence[Time], method: Interpolation | None = None
@@ -260,11 +286,8 @@ class TimeBuffer:
                 f"{self.name}: slerp needs a buffer made with interpolation='slerp' (it checks "
                 "that every sample is a unit quaternion)"
             )
-        n = len(self)
-        if n == 0:
-            raise TimeLookupError(f"{self.name}: the buffer is empty; add samples before at()")
-        stamps = self._stamps[self._start : self._end]
-        values = self._values[self._start : self._end]
+        stamps, values = self._kept()
+        n = len(stamps)
         if ts.size == 0:
             return np.empty((0, *values.shape[1:]), dtype=np.float64)
         self._check_range(ts, stamps)
@@ -273,11 +296,7 @@ class TimeBuffer:
         if method == "exact":
             found = stamps[before] == ts
             if not found.all():
-                missing = int(ts[np.argmin(found)])
-                raise TimeLookupError(
-                    f"{self.name}: no sample stamped exactly {self._time(missing)}; use "
-                    "'nearest', 'previous' or 'linear' for stamps between samples"
-                )
+                raise self._no_exact_sample(int(ts[np.argmin(found)]))
             return values[before].copy()
         if method == "previous":
             return values[before].copy()
@@ -295,6 +314,18 @@ class TimeBuffer:
             w = weight.reshape((-1,) + (1,) * (values.ndim - 1))
             return v0 + w * (v1 - v0)
         return _slerp(v0, v1, weight)
+
+    def _kept(self) -> tuple[npt.NDArray[np.int64], npt.NDArray[np.float64]]:
+        """The kept stamps and values (views); TimeLookupError if there are none."""
+        if not len(self):
+            raise TimeLookupError(f"{self.name}: the buffer is empty; add samples before at()")
+        return self._stamps[self._start : self._end], self._values[self._start : self._end]
+
+    def _no_exact_sample(self, ns: int) -> TimeLookupError:
+        return TimeLookupError(
+            f"{self.name}: no sample stamped exactly {self._time(ns)}; use 'nearest', "
+            "'previous' or 'linear' for stamps between samples"
+        )
 
     def _check_range(self, ts: npt.NDArray[np.int64], stamps: npt.NDArray[np.int64]) -> None:
         oldest, newest = int(stamps[0]), int(stamps[-1])
@@ -318,6 +349,12 @@ class TimeBuffer:
                 f"{self.name}: cannot answer at({self._time(worst)}): it is {side}, beyond "
                 f"max_extrapolation={self.max_extrapolation.seconds:g} s{evicted}"
             )
+
+
+def _row(values: npt.NDArray[np.float64], index: int) -> npt.NDArray[np.float64]:
+    """A copy of sample ``index`` (so callers never hold a view into the ring)."""
+    row: npt.NDArray[np.float64] = values[index].copy()
+    return row
 
 
 def _slerp(

@@ -75,6 +75,8 @@ def test_vectorised_lookups_match_a_sample_by_sample_reference(stamps, values, f
         assert got_prev == values[before]
         nearest = min(range(len(stamps)), key=lambda i: (abs(stamps[i] - q), stamps[i]))
         assert got_near == values[nearest]
+        assert buffer.at(Time(0, int(q)), "previous") == values[before]  # the scalar path
+        assert buffer.at(Time(0, int(q)), "nearest") == values[nearest]
         assert buffer.at(Time(0, int(q))) == pytest.approx(linear[list(queries).index(q)])
 
 
