@@ -30,7 +30,7 @@ import pybullet as p
 
 import evclock
 
-from ._base import ClockLike, Metric, Scenario
+from ._base import ClockLike, Metric, Scenario, TimeLike
 from .husky import LEFT_WHEELS, RIGHT_WHEELS, TRACK, WHEEL_RADIUS
 
 
@@ -129,6 +129,8 @@ class LandmarkFusion(Scenario):
         """Landmark position errors (metres) per way of fusing, one per detection."""
         self.latest_pose: tuple[np.ndarray, np.ndarray] | None = None
         self.stamps: evclock.StampDiagnostics | None = None
+        self._clock_type = evclock.SIM
+        """The domain of the stamps: the clock's (STEADY when run on wall time)."""
 
     # -- sensors ---------------------------------------------------------------------------
 
@@ -138,8 +140,12 @@ class LandmarkFusion(Scenario):
         )
         return np.array(position), np.array(orientation)
 
+    def _stamp(self, when: TimeLike) -> evclock.Time:
+        return evclock.Time(0, when.nanoseconds, self._clock_type)
+
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
         stamp_clock = _stamp_clock(clock)
+        self._clock_type = stamp_clock.clock_type
         self.stamps = evclock.StampDiagnostics(
             "fusion", clock=stamp_clock, stale_after=self.stale_after, max_queue=5
         )
@@ -169,7 +175,7 @@ class LandmarkFusion(Scenario):
     ) -> None:
         async for tick in clock.rate(self.odometry_hz, name="odometry"):
             position, orientation = self._pose()
-            stamp = evclock.Time(0, tick.actual.nanoseconds)
+            stamp = self._stamp(tick.actual)
             header = Header(stamp.to_msg(), "odom")
             positions.add(stamp, position)
             orientations.add(stamp, orientation / np.linalg.norm(orientation))
@@ -183,7 +189,7 @@ class LandmarkFusion(Scenario):
         async for tick in clock.rate(self.camera_hz, name="camera"):
             position, orientation = self._pose()
             relative = _matrix(orientation).T @ (self.landmark - position)
-            stamp = evclock.Time(0, tick.actual.nanoseconds)
+            stamp = self._stamp(tick.actual)
             detection = Detection(Header(stamp.to_msg(), "camera"), relative)
             in_flight.put_nowait((tick.actual.nanoseconds + latency_ns, detection))
 

@@ -99,3 +99,12 @@ def test_readme_snippet_runs_as_written() -> None:
         "frame 2 scan [0.2 0. ]",
         "frame 3 scan [0.3 0. ]",
     ]
+
+
+def test_fusion_on_wall_time_stamps_in_the_wall_clock_domain() -> None:
+    report = run_scenario("fusion", wall=True, until=0.5)
+    assert report.mode == "wall"
+    (stamps,) = report.stamps
+    assert stamps["streams"]["odometry"]["messages"] >= 2  # stamped and buffered on STEADY
+    assert stamps["streams"]["odometry"]["future"] == 0
+    assert not report.finished
