@@ -11,9 +11,9 @@ its ``on_warning`` hook (default: the ``evclock.stamps`` logger) when
 * a consumer's queue holds more than ``max_queue`` items (``"behind"``: it cannot keep up).
 
 Each condition warns once when it starts and again only after it has cleared, so a stuck
-stream does not flood the log; every occurrence is counted. Diagnostics created on a running
-loop are listed by :func:`diagnostics_report` (the latest one of each name), which
-``evclock run`` shows in its report.
+stream does not flood the log; every occurrence is counted. Diagnostics used on a running
+loop are listed by :func:`diagnostics_report` (the latest one of each name, while it is
+alive), which ``evclock run`` shows in its report.
 """
 
 from __future__ import annotations
@@ -43,9 +43,11 @@ _logger = logging.getLogger("evclock.stamps")
 
 WarningKind = Literal["stale", "future", "behind"]
 
-_registry: weakref.WeakKeyDictionary[asyncio.AbstractEventLoop, dict[str, StampDiagnostics]] = (
-    weakref.WeakKeyDictionary()
-)
+# Loop -> name -> diagnostics, all weak: a diagnostics object holds its clock, which holds
+# the loop, so strong values would keep every loop that ever used one alive.
+_registry: weakref.WeakKeyDictionary[
+    asyncio.AbstractEventLoop, weakref.WeakValueDictionary[str, StampDiagnostics]
+] = weakref.WeakKeyDictionary()
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,7 +154,7 @@ class StampDiagnostics:
             except RuntimeError:
                 loop = None
             if loop is not None:
-                _registry.setdefault(loop, {})[self.name] = self
+                _registry.setdefault(loop, weakref.WeakValueDictionary())[self.name] = self
                 self._registered = True
         return self._clock.now()
 
@@ -302,11 +304,12 @@ class StampDiagnostics:
 def diagnostics_report(loop: asyncio.AbstractEventLoop | None = None) -> list[dict[str, Any]]:
     """``as_dict()`` of every :class:`StampDiagnostics` used on ``loop`` (default: running).
 
-    The latest diagnostics of each name, in the order the names first appeared.
+    The latest diagnostics of each name still alive, in the order the names first appeared.
     """
     if loop is None:
         loop = asyncio.get_running_loop()
-    return [diag.as_dict() for diag in _registry.get(loop, {}).values()]
+    named = _registry.get(loop)
+    return [] if named is None else [diag.as_dict() for diag in named.values()]
 
 
 def render_diagnostics_report(reports: list[dict[str, Any]], console: Any) -> None:

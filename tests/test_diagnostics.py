@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
+import weakref
 
 import pytest
 
@@ -79,15 +81,30 @@ def test_a_domain_mixup_in_observe_raises() -> None:
 
 def test_report_lists_the_latest_diagnostics_of_each_name_on_the_loop() -> None:
     async def main() -> list[dict[str, object]]:
-        StampDiagnostics("a").observe("s", evclock.clock().now())
-        StampDiagnostics("b").observe("s", evclock.clock().now())
-        replacement = StampDiagnostics("a")
-        replacement.observe("t", evclock.clock().now())
-        StampDiagnostics("unused")  # never observed anything: not listed
+        alive = [StampDiagnostics(name) for name in ("a", "b", "a", "unused", "dropped")]
+        for diag, stream in zip(alive, ("s", "s", "t", None, "s"), strict=True):
+            if stream is not None:  # "unused" never observes anything: not listed
+                diag.observe(stream, evclock.clock().now())
+        del alive[4], diag  # gone: not listed either (the registry holds no strong reference)
+        gc.collect()
         return diagnostics_report()
 
     report = evclock.run(main())
     assert [(r["name"], list(r["streams"])) for r in report] == [("a", ["t"]), ("b", ["s"])]
+
+
+def test_diagnostics_do_not_keep_their_loop_alive() -> None:
+    loops: list[weakref.ref[asyncio.AbstractEventLoop]] = []
+
+    async def main() -> int:
+        loops.append(weakref.ref(asyncio.get_running_loop()))
+        diag = StampDiagnostics()  # registered for the loop's report
+        diag.observe("s", evclock.clock().now())
+        return diag.streams()["s"].count
+
+    assert evclock.run(main()) == 1
+    gc.collect()
+    assert loops[0]() is None
 
 
 @pytest.mark.parametrize(
