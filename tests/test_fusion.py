@@ -73,11 +73,12 @@ def test_fusion_run_reports_stamp_ages_and_succeeds(tmp_path: Path) -> None:
     assert stamps["warnings"] == []
 
 
-def test_fusion_is_deterministic_and_seeded() -> None:
+def test_fusion_is_the_same_whatever_the_pace() -> None:
+    # (Seeds giving different runs: test_sims_physics.py::test_deterministic_per_seed.)
     first, again = run_scenario("fusion", seed=2), run_scenario("fusion", seed=2, rtf=50.0)
-    assert first.final_state == again.final_state
+    assert first.final_state == again.final_state  # bit for bit
     assert first.summary == again.summary
-    assert run_scenario("fusion", seed=3).final_state != first.final_state
+    assert first.stamps == again.stamps
 
 
 def test_readme_snippet_runs_as_written() -> None:
