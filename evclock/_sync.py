@@ -10,6 +10,7 @@ and matched groups come out either to a ``callback(*messages)`` or through
 
 from __future__ import annotations
 
+import abc
 import asyncio
 import inspect
 import logging
@@ -61,8 +62,8 @@ def _positive_int(value: object, what: str) -> int:
     return value
 
 
-class _Synchronizer:
-    """The shared front end (see the module docstring)."""
+class _Synchronizer(abc.ABC):
+    """The shared front end (see the module docstring); subclasses choose the policy."""
 
     def __init__(
         self,
@@ -105,14 +106,15 @@ class _Synchronizer:
         self._waiter: asyncio.Future[None] | None = None
         self._closed = False
         self._warned: set[tuple[str, str]] = set()
-        self.received = [0] * len(self._names)
+        self._received = [0] * len(self._names)
         self.groups = 0
         """Groups matched so far."""
         self.groups_dropped = 0
         """Groups discarded because the async consumer had ``max_pending`` unread ones."""
 
+    @abc.abstractmethod
     def _make_policy(self) -> _Policy:
-        raise NotImplementedError
+        """The matching policy, built from the validated arguments."""
 
     # -- input --
 
@@ -161,7 +163,7 @@ class _Synchronizer:
             raise InvalidArgumentError(f"{self.name} is closed; no more messages can be added")
         index = self._stream_index(stream)
         stamp = stamp_of(message, self.clock.clock_type, self._key)
-        self.received[index] += 1
+        self._received[index] += 1
         if self._diagnostics is not None:
             self._diagnostics.observe(self._names[index], stamp)
         groups = self._policy.add(index, stamp.nanoseconds, message)
@@ -259,7 +261,7 @@ class _Synchronizer:
         return {
             "streams": {
                 stream: {
-                    "received": self.received[i],
+                    "received": self._received[i],
                     "dropped": policy.dropped[i],
                     "out_of_order": policy.out_of_order[i],
                     "bound_violations": policy.bound_violations[i],
