@@ -4,6 +4,7 @@
 
 const STATE_PERIOD_MS = 250;
 const HISTORY_PERIOD_MS = 1000;
+const SCENE_PERIOD_MS = 200; // the server renders at most its scene_fps whatever we ask
 const COLORS = ["#2563eb", "#d92d20", "#039855", "#dc6803", "#7a5af8", "#0e9384"];
 
 const $ = (id) => document.getElementById(id);
@@ -94,8 +95,11 @@ function render(state) {
   $("sim-time").textContent = `${state.sim_time_s.toFixed(6)} s`;
   $("physics-steps").textContent = String(state.physics_steps);
   const runState = $("run-state");
-  runState.textContent = state.paused ? "paused" : "running";
-  runState.classList.toggle("paused", state.paused);
+  const stepping = state.stepping;
+  runState.textContent = stepping
+    ? `stepping ${stepping.taken}/${stepping.count}`
+    : state.paused ? "paused" : "running";
+  runState.classList.toggle("paused", state.paused && !stepping);
   $("lockstep-overruns").textContent = String(state.lockstep_overruns);
   $("achieved-rtf").textContent = factor(state.achieved_rtf);
   $("requested-rtf").textContent = state.rtf == null ? "max" : factor(state.rtf);
@@ -177,6 +181,34 @@ function poll(path, period, apply) {
   tick();
 }
 
+// ---------------------------------------------------------------- scene
+
+// Fetch the next frame once the previous one is shown; <img data-frame> counts frames.
+async function refreshScene() {
+  try {
+    const response = await fetch("/api/scene.jpg", { cache: "no-store" });
+    if (!response.ok) throw new Error(`${response.status} ${response.statusText}`);
+    const frame = response.headers.get("X-Frame");
+    const image = $("scene");
+    if (frame !== image.dataset.frame) {
+      const url = URL.createObjectURL(await response.blob());
+      await new Promise((resolve, reject) => {
+        image.onload = resolve;
+        image.onerror = () => reject(new Error("the scene frame could not be decoded"));
+        image.src = url;
+      });
+      if (image.dataset.url) URL.revokeObjectURL(image.dataset.url);
+      image.dataset.url = url;
+      image.dataset.frame = frame;
+      const simTime = Number(response.headers.get("X-Sim-Time-Ns")) / 1e9;
+      $("scene-time").textContent = `${simTime.toFixed(3)} s`;
+    }
+  } catch (error) {
+    showError(`scene: ${error.message}`);
+  }
+  setTimeout(refreshScene, SCENE_PERIOD_MS);
+}
+
 // ------------------------------------------------------------- controls
 
 async function control(path, body) {
@@ -212,5 +244,8 @@ for (const button of document.querySelectorAll(".rtf-preset")) {
   });
 }
 
+// The page arrives with the state embedded: show it at once, then keep it fresh.
+render(JSON.parse($("initial-state").textContent));
 poll("/api/state", STATE_PERIOD_MS, render);
+refreshScene();
 poll("/api/history", HISTORY_PERIOD_MS, updatePlots);
