@@ -200,6 +200,7 @@ async function refreshScene() {
       if (image.dataset.url) URL.revokeObjectURL(image.dataset.url);
       image.dataset.url = url;
       image.dataset.frame = frame;
+      image.dataset.steps = response.headers.get("X-Physics-Steps");
       const simTime = Number(response.headers.get("X-Sim-Time-Ns")) / 1e9;
       $("scene-time").textContent = `${simTime.toFixed(3)} s`;
     }
