@@ -19,6 +19,7 @@ import concurrent.futures
 import dataclasses
 import io
 import multiprocessing
+import os
 import time
 from collections.abc import Callable
 
@@ -161,6 +162,11 @@ def render_jpeg(pose: WorldPose, camera: Camera, width: int, height: int, qualit
     return out.getvalue()
 
 
+def _lower_priority() -> None:
+    """The render worker's initializer: yield the CPU to the simulation when it is busy."""
+    os.nice(10)
+
+
 # ---------------------------------------------------------------- in the server
 
 
@@ -176,33 +182,31 @@ class Frame:
     episode: int
 
 
-@dataclasses.dataclass(frozen=True, slots=True)
-class SceneState:
-    """What the server reads when a frame is due: the poses and the state they belong to."""
-
-    pose: WorldPose
-    sim_time_ns: int
-    physics_steps: int
-
-
 class SceneView:
     """Frames of the running simulation, rendered in a worker process on demand.
 
-    ``read_state`` reads the world on the server's loop (between two physics steps);
-    ``moved`` tells whether ``(physics_steps, episode)`` differs from the last frame's.
-    At most ``fps`` frames are rendered per wall second however many clients ask.
+    ``progress`` returns ``(physics_steps, episode)`` (cheap: asked on every request);
+    ``read_pose`` reads the world on the server's loop, between two physics steps, and
+    ``sim_time_ns`` the time it shows - both only when a new frame is due. At most ``fps``
+    frames are rendered per wall second however many clients ask, and none while the
+    simulation stands still. The worker runs at a lower scheduling priority than the server
+    (``nice`` +10), so on a busy machine the simulation gets the CPU first.
     """
 
     def __init__(
         self,
-        read_state: Callable[[], SceneState],
+        progress: Callable[[], tuple[int, int]],
+        read_pose: Callable[[], WorldPose],
+        sim_time_ns: Callable[[], int],
         camera: Camera,
         *,
         fps: float,
         size: tuple[int, int],
         quality: int = 80,
     ) -> None:
-        self._read_state = read_state
+        self._progress = progress
+        self._read_pose = read_pose
+        self._sim_time_ns = sim_time_ns
         self._camera = camera
         self._period = 1.0 / fps
         self._size = size
@@ -221,35 +225,33 @@ class SceneView:
         """The latest frame: a new one if the simulation moved and the rate bound allows."""
         async with self._lock:  # one render at a time; those who waited get its frame
             last = self._frame
-            state = self._read_state()
-            moved = last is None or (state.physics_steps, state.pose.episode) != (
-                last.physics_steps,
-                last.episode,
-            )
+            steps, episode = self._progress()
             now = time.monotonic()
-            if last is not None and (not moved or now < self._next_at):
+            still = last is not None and (steps, episode) == (last.physics_steps, last.episode)
+            if last is not None and (still or now < self._next_at):
                 return last
             self._next_at = now + self._period
+            pose, sim_time_ns = self._read_pose(), self._sim_time_ns()
             pool = self._start_pool()
             width, height = self._size
             try:
                 jpeg = await asyncio.get_running_loop().run_in_executor(
-                    pool, render_jpeg, state.pose, self._camera, width, height, self._quality
+                    pool, render_jpeg, pose, self._camera, width, height, self._quality
                 )
             except concurrent.futures.process.BrokenProcessPool:
                 self._pool = None  # the worker died: the next frame starts a new one
                 raise
             number = 1 if last is None else last.number + 1
-            self._frame = Frame(
-                number, jpeg, state.sim_time_ns, state.physics_steps, state.pose.episode
-            )
+            self._frame = Frame(number, jpeg, sim_time_ns, steps, episode)
             return self._frame
 
     def _start_pool(self) -> concurrent.futures.ProcessPoolExecutor:
         if self._pool is None:
             # spawn: a fresh interpreter (forking a process with threads is unsafe).
             context = multiprocessing.get_context("spawn")
-            self._pool = concurrent.futures.ProcessPoolExecutor(1, mp_context=context)
+            self._pool = concurrent.futures.ProcessPoolExecutor(
+                1, mp_context=context, initializer=_lower_priority
+            )
         return self._pool
 
     def close(self) -> None:

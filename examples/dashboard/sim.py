@@ -15,6 +15,7 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Sequence
 from types import TracebackType
 from typing import Any, cast
 
@@ -24,7 +25,7 @@ from evclock_sims import Scenario, get_scenario
 from evclock import PyBulletTimeSource, Rate, SimDriver
 
 from .config import DashboardConfig
-from .scene import SceneState, SceneView, camera_for, read_world_pose
+from .scene import SceneView, WorldPose, camera_for, read_world_pose
 
 log = logging.getLogger(__name__)
 
@@ -146,7 +147,9 @@ class SimService:
         self._step_lock = asyncio.Lock()
         self._stepping: _Stepping | None = None
         self.scene = SceneView(
-            self._scene_state,
+            self._scene_progress,
+            self._read_world_pose,
+            lambda: self.driver.now_ns,
             camera_for(config.scenario),
             fps=config.scene_fps,
             size=config.scene_size,
@@ -279,11 +282,15 @@ class SimService:
         """The episode running now (or, with ``repeat=False``, the one that ran)."""
         return self._episode
 
-    def _scene_state(self) -> SceneState:
+    def _scene_progress(self) -> tuple[int, int]:
         episode = self._episode
         assert episode is not None
-        pose = read_world_pose(self._client, episode.scenario, episode.number)
-        return SceneState(pose, self.driver.now_ns, self.physics_steps)
+        return self.physics_steps, episode.number
+
+    def _read_world_pose(self) -> WorldPose:
+        episode = self._episode
+        assert episode is not None
+        return read_world_pose(self._client, episode.scenario, episode.number)
 
     # ------------------------------------------------------------------ history
 
@@ -448,7 +455,7 @@ def _rate_info(rate: Rate) -> dict[str, Any]:
     }
 
 
-async def _cancel_all(tasks: list[asyncio.Future[Any]]) -> None:
+async def _cancel_all(tasks: Sequence[asyncio.Future[Any]]) -> None:
     """Cancel ``tasks`` and wait until they are done (their errors are theirs to report)."""
     for task in tasks:
         task.cancel()
