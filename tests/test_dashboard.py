@@ -697,3 +697,19 @@ def _wait_for_url(process: subprocess.Popen[str], lines: queue.Queue[str]) -> st
 def test_bad_scene_settings(options: dict[str, Any], fragment: str) -> None:
     with pytest.raises(ValueError, match=re.escape(fragment)):
         DashboardConfig(**options)
+
+
+def test_resume_ends_a_step_under_way(make_client: Callable[..., httpx.Client]) -> None:
+    client = make_client(rtf=1.0)
+    count = 240 * 3600
+    step = StepInBackground(str(client.base_url), count)
+    wait_for(lambda s: s["stepping"] is not None, client, "the step to be under way")
+    post_ok(client, "/api/resume")
+    response = step.result()
+    assert response.status_code == 409, response.text
+    body = response.json()
+    assert body["step"]["reason"] == "interrupted"
+    assert "interrupted by a resume after" in body["error"]
+    current = state(client)
+    assert current["paused"] is False  # the resume stands: sim time runs freely
+    assert current["stepping"] is None

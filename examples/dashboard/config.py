@@ -16,7 +16,7 @@ class DashboardConfig:
     """
 
     scenario: str = "kuka"
-    """Name of a scenario in :data:`sims.SCENARIOS`."""
+    """Name of a scenario in :data:`evclock_sims.SCENARIOS`."""
     seed: int = 0
     """Seed of the first episode; each following episode uses the next seed."""
     rtf: float | None = 1.0

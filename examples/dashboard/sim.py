@@ -17,7 +17,7 @@ import math
 import time
 from collections.abc import Sequence
 from types import TracebackType
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import pybullet as p
 from evclock_sims import Scenario, get_scenario
@@ -96,12 +96,14 @@ class StepResult:
 class StepNotCompleted(Exception):
     """A ``step()`` that ended before its steps were all taken; nothing keeps stepping.
 
-    ``reason`` is ``"interrupted"`` (paused meanwhile, which cancels the remaining steps)
-    or ``"timeout"`` (still under way after ``config.step_timeout`` wall seconds: the rest
-    were cancelled).
+    ``reason`` is ``"interrupted"`` (a pause or a resume meanwhile, which ends the remaining
+    steps) or ``"timeout"`` (still under way after ``config.step_timeout`` wall seconds: the
+    rest were cancelled).
     """
 
-    def __init__(self, reason: str, count: int, taken: int, message: str) -> None:
+    def __init__(
+        self, reason: Literal["interrupted", "timeout"], count: int, taken: int, message: str
+    ) -> None:
         super().__init__(message)
         self.reason = reason
         self.count = count
@@ -117,6 +119,12 @@ class _Stepping:
     """``physics_steps`` when it started."""
     done: asyncio.Event
     interrupted: asyncio.Event
+    interrupted_by: str = ""
+    """The control that interrupted it: ``"pause"`` or ``"resume"``."""
+
+    def interrupt(self, control: str) -> None:
+        self.interrupted_by = control
+        self.interrupted.set()
 
 
 class SimService:
@@ -358,8 +366,10 @@ class SimService:
     # ------------------------------------------------------------------ controls
 
     def resume(self) -> None:
-        """Let sim time advance again at the requested rtf."""
+        """Let sim time advance again at the requested rtf; ends a step under way."""
         self.driver.resume()
+        if self._stepping is not None:
+            self._stepping.interrupt("resume")
 
     def set_rtf(self, rtf: object) -> None:
         """Change the requested real-time factor (None: as fast as possible).
@@ -372,7 +382,7 @@ class SimService:
         """Stop sim time (the HTTP server keeps serving); cancels a step under way."""
         self.driver.pause()
         if self._stepping is not None:
-            self._stepping.interrupted.set()
+            self._stepping.interrupt("pause")
 
     async def step(self, count: object = 1) -> StepResult:
         """While paused, advance exactly ``count`` physics steps; return once they are taken.
@@ -380,10 +390,10 @@ class SimService:
         Returns after the work due at the final time has run (the controllers' ticks there),
         so the state read next shows it. Steps are paced at the requested rtf and counted
         across episode resets. Raises :class:`StepNotCompleted` if a :meth:`pause` cancels
-        the remaining steps, or if they are not all taken within ``config.step_timeout``
-        wall seconds (the rest are then cancelled: nothing goes on stepping). Concurrent
-        calls take their turns. ``count`` is passed to evclock unchecked (it raises for a
-        bad count or when running).
+        the remaining steps or a :meth:`resume` ends them (sim time then runs freely), or if
+        they are not all taken within ``config.step_timeout`` wall seconds (the rest are then
+        cancelled: nothing goes on stepping). Concurrent calls take their turns. ``count``
+        is passed to evclock unchecked (it raises for a bad count or when running).
         """
         async with self._step_lock:
             driver = self.driver
@@ -408,8 +418,8 @@ class SimService:
                     "interrupted",
                     steps,
                     taken,
-                    f"the step was interrupted by a pause after {taken} of {steps} physics "
-                    "steps; the remaining ones were cancelled",
+                    f"the step was interrupted by a {stepping.interrupted_by} after {taken} of "
+                    f"{steps} physics steps; the remaining ones were cancelled",
                 )
             driver.pause()  # cancels the remaining steps
             rtf = "as fast as possible" if driver.rtf is None else f"rtf={driver.rtf:g}"
