@@ -126,11 +126,16 @@ def test_dashboard_controls_sim_time_end_to_end(page: Page) -> None:
     expect(page.locator("#lateness-plot .u-legend")).to_contain_text("joint_control")
     expect(page.locator("#lateness-plot .u-legend")).to_contain_text("planner")
 
-    # The scene view changes as the robot moves.
+    # The scene view changes as the robot moves (within a few frames: the arm may rest
+    # a moment at a target).
     wait_for_scene_frame_above(page, 0)
-    before_frame, before = scene_frame(page), page.locator("#scene").screenshot()
-    wait_for_scene_frame_above(page, before_frame)
-    assert page.locator("#scene").screenshot() != before
+    before = page.locator("#scene").screenshot()
+    for _ in range(10):
+        wait_for_scene_frame_above(page, scene_frame(page))
+        if page.locator("#scene").screenshot() != before:
+            break
+    else:
+        pytest.fail("the scene view showed the same image for 10 frames while running")
 
     # Back to real time. Running: sim time advances on the page.
     page.click(".rtf-preset[data-rtf='1']")
