@@ -183,6 +183,20 @@ def test_dashboard_controls_sim_time_end_to_end(page: Page) -> None:
     )
     assert scene_frame(page) > paused_frame  # a new frame for the stepped world
 
+    # A long step shows its progress, and Pause stops it there.
+    page.fill("#step-count", "100000")
+    page.click("#step")
+    expect(page.locator("#run-state")).to_have_text(re.compile(r"^stepping [1-9]\d*/100000$"))
+    expect(page.locator("#pause")).to_be_enabled()
+    page.click("#pause")
+    expect(page.locator("#run-state")).to_have_text("paused")
+    expect(page.locator("#step")).to_be_enabled()
+    expect(page.locator("#error")).to_be_hidden()
+    stopped_at = physics_steps(page)
+    assert stopped_at > paused_at + 4
+    wait_for_renders(page, 3)
+    assert physics_steps(page) == stopped_at
+
     # Change the real-time factor; a bad one shows evclock's message.
     page.fill("#rtf-input", "2")
     page.click("#rtf-set")
@@ -198,4 +212,4 @@ def test_dashboard_controls_sim_time_end_to_end(page: Page) -> None:
     expect(page.locator("#run-state")).to_have_text("running")
     expect(page.locator("#error")).to_be_hidden()
     expect(page.locator("#step")).to_be_disabled()
-    wait_for_steps_above(page, paused_at + 4 + 10)
+    wait_for_steps_above(page, stopped_at + 10)

@@ -10,7 +10,7 @@ const COLORS = ["#2563eb", "#d92d20", "#039855", "#dc6803", "#7a5af8", "#0e9384"
 const $ = (id) => document.getElementById(id);
 const controls = () => document.querySelectorAll(".controls button, .controls input");
 
-let busy = false; // a control request is in flight
+let busy = 0; // control requests in flight (a pause may be sent while a step is)
 let renders = 0; // counted in <body data-renders>: lets tests wait for fresh data
 let lastState = null;
 let generation = 0; // bumped by each control: polls sent before it are stale
@@ -33,7 +33,9 @@ async function api(method, path, body) {
   }
   if (!response.ok) {
     const message = data && data.error ? data.error : `${response.status} ${response.statusText}`;
-    throw new Error(message);
+    const error = new Error(message);
+    error.data = data;
+    throw error;
   }
   return data;
 }
@@ -213,19 +215,24 @@ async function refreshScene() {
 // ------------------------------------------------------------- controls
 
 async function control(path, body) {
-  busy = true;
+  busy += 1;
   controls().forEach((element) => { element.disabled = true; });
+  if (path === "/api/step") $("pause").disabled = false; // a pause cancels a long step
   try {
     const state = await api("POST", path, body);
     generation += 1;
     showError("");
     render(state);
   } catch (error) {
-    showError(error.message);
+    const step = error.data && error.data.step;
+    // A step the user interrupted (Pause) is no error: the state shows where it stopped.
+    showError(step && step.reason === "interrupted" ? "" : error.message);
   } finally {
-    busy = false;
-    if (lastState) updateButtons(lastState);
-    else controls().forEach((element) => { element.disabled = false; });
+    busy -= 1;
+    if (busy === 0) {
+      if (lastState) updateButtons(lastState);
+      else controls().forEach((element) => { element.disabled = false; });
+    }
   }
 }
 
