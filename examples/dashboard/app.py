@@ -80,7 +80,7 @@ def _state_response(service: SimService, **extra: Any) -> JSONResponse:
 
 def _embed_json(value: Any) -> str:
     """``value`` as JSON that is safe inside an HTML ``<script>`` element."""
-    text = json.dumps(value)
+    text = json.dumps(value, allow_nan=False)
     return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
 
 
