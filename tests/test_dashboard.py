@@ -530,6 +530,7 @@ def test_pause_interrupts_a_step_and_cancels_the_rest(
     assert body["step"]["count"] == count
     assert 0 < body["step"]["taken"] < count
     assert "interrupted by a pause" in body["error"]
+    assert body["error"].endswith("physics steps; the remaining ones were cancelled")
     assert f"of {count} physics steps" in body["error"]
     # Nothing steps on in the background.
     stopped = state(client)
@@ -711,6 +712,7 @@ def test_resume_ends_a_step_under_way(make_client: Callable[..., httpx.Client]) 
     body = response.json()
     assert body["step"]["reason"] == "interrupted"
     assert "interrupted by a resume after" in body["error"]
+    assert body["error"].endswith("physics steps; sim time now runs freely")
     current = state(client)
     assert current["paused"] is False  # the resume stands: sim time runs freely
     assert current["stepping"] is None

@@ -119,10 +119,10 @@ class _Stepping:
     """``physics_steps`` when it started."""
     done: asyncio.Event
     interrupted: asyncio.Event
-    interrupted_by: str = ""
-    """The control that interrupted it: ``"pause"`` or ``"resume"``."""
+    interrupted_by: Literal["pause", "resume", ""] = ""
+    """The control that interrupted it, if any."""
 
-    def interrupt(self, control: str) -> None:
+    def interrupt(self, control: Literal["pause", "resume"]) -> None:
         self.interrupted_by = control
         self.interrupted.set()
 
@@ -365,6 +365,12 @@ class SimService:
 
     # ------------------------------------------------------------------ controls
 
+    def pause(self) -> None:
+        """Stop sim time (the HTTP server keeps serving); cancels a step under way."""
+        self.driver.pause()
+        if self._stepping is not None:
+            self._stepping.interrupt("pause")
+
     def resume(self) -> None:
         """Let sim time advance again at the requested rtf; ends a step under way."""
         self.driver.resume()
@@ -377,12 +383,6 @@ class SimService:
         ``rtf`` is passed to evclock unchecked: evclock validates it and raises its errors.
         """
         self.driver.rtf = rtf  # type: ignore[assignment]
-
-    def pause(self) -> None:
-        """Stop sim time (the HTTP server keeps serving); cancels a step under way."""
-        self.driver.pause()
-        if self._stepping is not None:
-            self._stepping.interrupt("pause")
 
     async def step(self, count: object = 1) -> StepResult:
         """While paused, advance exactly ``count`` physics steps; return once they are taken.
@@ -419,7 +419,12 @@ class SimService:
                     steps,
                     taken,
                     f"the step was interrupted by a {stepping.interrupted_by} after {taken} of "
-                    f"{steps} physics steps; the remaining ones were cancelled",
+                    f"{steps} physics steps; "
+                    + (
+                        "the remaining ones were cancelled"
+                        if stepping.interrupted_by == "pause"
+                        else "sim time now runs freely"
+                    ),
                 )
             driver.pause()  # cancels the remaining steps
             rtf = "as fast as possible" if driver.rtf is None else f"rtf={driver.rtf:g}"
