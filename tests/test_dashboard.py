@@ -716,3 +716,17 @@ def test_resume_ends_a_step_under_way(make_client: Callable[..., httpx.Client]) 
     current = state(client)
     assert current["paused"] is False  # the resume stands: sim time runs freely
     assert current["stepping"] is None
+
+
+def test_without_pillow_the_error_names_the_extra() -> None:
+    code = (
+        "import sys; sys.modules['PIL'] = None\n"  # as if Pillow were not installed
+        "import examples.dashboard\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=WAIT
+    )
+    assert result.returncode == 1
+    assert "scene view encodes JPEG with Pillow" in result.stderr
+    assert "pip install 'evclock[dashboard]'" in result.stderr

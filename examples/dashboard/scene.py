@@ -26,6 +26,14 @@ from collections.abc import Callable
 import pybullet as p
 from evclock_sims import Scenario, get_scenario
 
+try:
+    from PIL import Image
+except ModuleNotFoundError as exc:  # checked when the app is built, not at the first frame
+    raise ModuleNotFoundError(
+        "the dashboard's scene view encodes JPEG with Pillow, which is not installed: "
+        "pip install 'evclock[dashboard]'"
+    ) from exc
+
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Camera:
@@ -154,8 +162,6 @@ def render_jpeg(pose: WorldPose, camera: Camera, width: int, height: int, qualit
         flags=p.ER_NO_SEGMENTATION_MASK,
         physicsClientId=client,
     )
-    from PIL import Image  # the worker's own import: the server process never needs it
-
     image = Image.frombuffer("RGBA", (width, height), bytes(rgba), "raw", "RGBA", 0, 1)
     out = io.BytesIO()
     image.convert("RGB").save(out, format="JPEG", quality=quality)
