@@ -54,7 +54,7 @@ class Camera:
 CAMERAS: dict[str, Camera] = {
     "kuka": Camera(distance=1.5, yaw=50.0, pitch=-25.0, target=(0.0, 0.0, 0.5)),
     "husky": Camera(distance=4.5, yaw=30.0, pitch=-35.0, target=(0.0, 0.0, 0.0), follow=True),
-    "cartpole": Camera(distance=4.0, yaw=0.0, pitch=-10.0, target=(0.0, 0.0, 0.8)),
+    "cartpole": Camera(distance=3.0, yaw=0.0, pitch=-10.0, target=(0.0, 0.0, 0.6)),
 }
 """The camera of each bundled scenario."""
 
