@@ -3,8 +3,10 @@
 The app runs in-process under uvicorn (``BackgroundServer``: a background thread with its
 own event loop, on a free port) and the tests talk HTTP to it with httpx: the driver paces
 the simulation on the server's loop between requests, as in production. The simulation
-starts paused so that every check of sim time is exact; where time must move, the test
-polls with a bounded wait and never asserts on wall time.
+starts paused so that every check of sim time is exact. Every wait is for a condition and
+bounded (``WAIT``): where time must move, the test polls the state; to check that something
+does *not* move, it waits until the server has taken fresh history samples (so its loop has
+kept running meanwhile) instead of sleeping. Nothing is asserted about wall time.
 """
 
 from __future__ import annotations
@@ -12,9 +14,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
+import queue
+import re
+import signal
+import subprocess
+import sys
+import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from fractions import Fraction
+from pathlib import Path
 from typing import Any
 
 import httpx
@@ -88,6 +98,25 @@ def wait_for(
         time.sleep(0.02)
 
 
+def samples(client: httpx.Client) -> int:
+    response = client.get("/api/history")
+    assert response.status_code == 200, response.text
+    return len(response.json()["wall_s"])
+
+
+def let_the_server_run(client: httpx.Client, count: int = 2) -> None:
+    """Wait until the server's sampler has taken ``count`` more samples (its loop kept running).
+
+    Replaces a sleep before checking that something did *not* change. The history keeps
+    ``history_size`` samples, so the fixture's configs keep it well above what a test fills.
+    """
+    target = samples(client) + count
+    deadline = time.monotonic() + WAIT
+    while samples(client) < target:
+        assert time.monotonic() < deadline, f"the sampler did not take {count} more samples"
+        time.sleep(0.02)
+
+
 def assert_error(response: httpx.Response, kind: type[Exception], *fragments: str) -> str:
     """A 400 JSON error of evclock type ``kind`` whose message contains ``fragments``."""
     assert response.status_code == 400, response.text
@@ -125,8 +154,9 @@ def test_initial_state_is_paused_at_zero_with_the_scenario_loops(client: httpx.C
 
 def test_paused_sim_time_does_not_advance(client: httpx.Client) -> None:
     first = state(client)
-    time.sleep(0.3)  # the driver keeps running meanwhile; sim time must not move
+    let_the_server_run(client)  # the driver keeps running meanwhile; sim time must not move
     assert state(client)["sim_time_ns"] == first["sim_time_ns"] == 0
+    assert state(client)["stepping"] is None
 
 
 # ------------------------------------------------------------------------- step
@@ -134,7 +164,8 @@ def test_paused_sim_time_does_not_advance(client: httpx.Client) -> None:
 
 def test_step_advances_exactly_the_requested_physics_steps(client: httpx.Client) -> None:
     result = post_ok(client, "/api/step", {"count": 5})
-    assert result["step"] == {"count": 5, "target_ns": exact_time_ns(5), "completed": True}
+    assert result["step"] == {"count": 5, "time_ns": exact_time_ns(5)}
+    assert result["stepping"] is None
     assert result["physics_steps"] == 5
     assert result["sim_time_ns"] == exact_time_ns(5)
     assert result["paused"] is True
@@ -142,7 +173,7 @@ def test_step_advances_exactly_the_requested_physics_steps(client: httpx.Client)
     result = post_ok(client, "/api/step")  # default: one step
     assert result["physics_steps"] == 6
     assert result["sim_time_ns"] == exact_time_ns(6)
-    time.sleep(0.2)
+    let_the_server_run(client)
     assert state(client)["sim_time_ns"] == exact_time_ns(6)  # and stays paused
 
 
@@ -194,7 +225,7 @@ def test_resume_advances_and_pause_stops_sim_time(client: httpx.Client) -> None:
     paused = post_ok(client, "/api/pause")
     assert paused["paused"] is True
     frozen = paused["sim_time_ns"]
-    time.sleep(0.3)
+    let_the_server_run(client)
     later = state(client)
     assert later["sim_time_ns"] == frozen
     assert later["sim_time_ns"] == exact_time_ns(later["physics_steps"])
@@ -218,7 +249,7 @@ def test_pause_step_resume_on_each_event_loop(
     post_ok(client, "/api/resume")
     wait_for(lambda s: s["physics_steps"] > 30, client, "sim time to advance")
     frozen = post_ok(client, "/api/pause")["sim_time_ns"]
-    time.sleep(0.2)
+    let_the_server_run(client)
     assert state(client)["sim_time_ns"] == frozen
 
 
@@ -287,16 +318,18 @@ def test_controls_need_post(client: httpx.Client) -> None:
 
 def test_history_has_one_column_per_series(client: httpx.Client) -> None:
     post_ok(client, "/api/step", {"count": 24})
+    stepped_s = exact_time_ns(24) / 1e9
     deadline = time.monotonic() + WAIT
-    while len((history := client.get("/api/history").json())["wall_s"]) < 3:
-        assert time.monotonic() < deadline, "the sampler took no samples"
-        time.sleep(0.05)
+    # Wait for a sample taken after the step (earlier ones show sim time 0).
+    while (history := client.get("/api/history").json())["sim_time_s"][-1] != stepped_s:
+        assert time.monotonic() < deadline, f"no sample after the step: {history}"
+        time.sleep(0.02)
     columns = [history["wall_s"], history["sim_time_s"], history["achieved_rtf"]]
     columns += [history["requested_rtf"], *history["lateness_ms"].values()]
     assert len({len(column) for column in columns}) == 1
     assert set(history["lateness_ms"]) == {"joint_control", "planner"}
     assert history["wall_s"] == sorted(history["wall_s"])
-    assert history["sim_time_s"][-1] == exact_time_ns(24) / 1e9
+    assert history["sim_time_s"][0] == 0.0
 
 
 def test_page_and_vendored_assets_are_served(client: httpx.Client) -> None:
@@ -304,6 +337,7 @@ def test_page_and_vendored_assets_are_served(client: httpx.Client) -> None:
     assert page.status_code == 200
     assert 'id="sim-time"' in page.text
     assert 'id="rtf-plot"' in page.text
+    assert 'id="scene"' in page.text
     for asset in ("dashboard.js", "dashboard.css", "vendor/uplot/uPlot.iife.min.js"):
         response = client.get(f"/static/{asset}")
         assert response.status_code == 200, asset
@@ -395,3 +429,304 @@ def test_background_server_serves_on_a_free_port() -> None:
         assert response.status_code == 200
         assert response.json()["physics_steps"] == 2
         assert httpx.get(server.url + "/", timeout=WAIT).status_code == 200
+
+
+# ------------------------------------------------- episodes: statistics survive
+
+
+def test_loop_statistics_and_lateness_survive_episode_resets(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(paused=False, rtf=None)
+    current = wait_for(
+        lambda s: s["episode"]["number"] >= 3 and s["loops"] and s["loops"][0]["ticks"] > 1,
+        client,
+        "the third episode, with its loops ticking",
+    )
+    episode = current["episode"]
+    loops = {loop["name"]: loop for loop in current["loops"]}
+    assert set(loops) == {"joint_control", "planner"}
+    # The statistics are this episode's own: no more ticks than since it started (a tick at
+    # the start, then one per period; the times are float seconds, hence the rounding).
+    since_start_s = current["sim_time_s"] - episode["started_at_s"]
+    assert 0 < loops["joint_control"]["ticks"] <= round(since_start_s * 100) + 1
+    assert 0 < loops["planner"]["ticks"] <= round(since_start_s * 10) + 1
+    # The lateness plot keeps its series and gets values from this episode too.
+    deadline = time.monotonic() + WAIT
+    while True:
+        history = client.get("/api/history").json()
+        recent = [
+            late
+            for sim, late in zip(
+                history["sim_time_s"], history["lateness_ms"]["joint_control"], strict=True
+            )
+            if sim > episode["started_at_s"] and late is not None
+        ]
+        if recent:
+            break
+        assert time.monotonic() < deadline, f"no lateness sample in episode 3: {history}"
+        time.sleep(0.02)
+    assert set(history["lateness_ms"]) == {"joint_control", "planner"}
+    assert all(0 <= late < 1000 / 240 for late in recent)  # under one physics step, in ms
+
+
+# -------------------------------------------- step: answers when done, or says why
+
+
+def test_a_step_across_an_episode_reset_takes_exactly_its_steps(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(rtf=None)
+    count = 240 * 12  # 12 simulated seconds: longer than a kuka mission plus the gap
+    result = post_ok(client, "/api/step", {"count": count})
+    assert result["step"]["count"] == count
+    assert result["physics_steps"] == count
+    assert result["episode"]["number"] >= 2
+    assert result["finished_episodes"][-1]["outcome"] == "success"
+    assert result["paused"] is True
+    assert result["stepping"] is None
+    let_the_server_run(client)
+    assert state(client)["physics_steps"] == count
+
+
+class StepInBackground:
+    """``POST /api/step`` on its own thread and client (the test keeps polling meanwhile)."""
+
+    def __init__(self, url: str, count: int) -> None:
+        self.response: httpx.Response | None = None
+        self._thread = threading.Thread(target=self._post, args=(url, count), daemon=True)
+        self._thread.start()
+
+    def _post(self, url: str, count: int) -> None:
+        with httpx.Client(base_url=url, timeout=WAIT) as client:
+            self.response = post(client, "/api/step", {"count": count})
+
+    def result(self) -> httpx.Response:
+        self._thread.join(WAIT)
+        assert self.response is not None, "the step request did not answer"
+        return self.response
+
+
+def test_pause_interrupts_a_step_and_cancels_the_rest(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(rtf=1.0)
+    count = 240 * 3600  # an hour of steps at rtf 1: under way for the whole test
+    step = StepInBackground(str(client.base_url), count)
+    under_way = wait_for(
+        lambda s: s["stepping"] is not None and s["stepping"]["taken"] > 0,
+        client,
+        "the step to be under way",
+    )
+    assert under_way["stepping"]["count"] == count
+    assert under_way["paused"] is True
+
+    post_ok(client, "/api/pause")
+    response = step.result()
+    assert response.status_code == 409, response.text
+    body = response.json()
+    assert body["type"] == "StepNotCompleted"
+    assert body["step"]["reason"] == "interrupted"
+    assert body["step"]["count"] == count
+    assert 0 < body["step"]["taken"] < count
+    assert "interrupted by a pause" in body["error"]
+    assert body["error"].endswith("physics steps; the remaining ones were cancelled")
+    assert f"of {count} physics steps" in body["error"]
+    # Nothing steps on in the background.
+    stopped = state(client)
+    assert stopped["stepping"] is None
+    let_the_server_run(client)
+    assert state(client)["physics_steps"] == stopped["physics_steps"]
+    assert stopped["physics_steps"] == body["step"]["taken"]
+
+
+def test_a_step_over_its_timeout_answers_504_and_cancels_the_rest(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(rtf=1.0, step_timeout=0.5)
+    count = 240 * 3600  # an hour at rtf 1, against half a second of wall time
+    response = post(client, "/api/step", {"count": count})
+    assert response.status_code == 504, response.text
+    body = response.json()
+    assert body["type"] == "StepNotCompleted"
+    assert body["step"]["reason"] == "timeout"
+    assert 0 <= body["step"]["taken"] < count
+    assert f"of {count} physics steps were taken in 0.5 s of wall time at rtf=1" in body["error"]
+    assert "raise the rtf" in body["error"]
+    stopped = state(client)
+    assert stopped["paused"] is True
+    assert stopped["stepping"] is None
+    assert stopped["physics_steps"] == body["step"]["taken"]
+    let_the_server_run(client)
+    assert state(client)["physics_steps"] == stopped["physics_steps"]
+
+
+# --------------------------------------------------------------------- scene
+
+
+def scene(client: httpx.Client) -> httpx.Response:
+    response = client.get("/api/scene.jpg")
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "image/jpeg"
+    assert response.content[:3] == b"\xff\xd8\xff"  # a JPEG
+    return response
+
+
+def test_scene_view_renders_frames_as_the_robot_moves(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(rtf=None)
+    first = scene(client)
+    assert first.headers["X-Frame"] == "1"
+    assert first.headers["X-Physics-Steps"] == "0"
+    assert first.headers["X-Sim-Time-Ns"] == "0"
+    assert first.headers["X-Episode"] == "1"
+
+    # Paused: nothing moved, so no new frame whoever asks.
+    let_the_server_run(client)
+    assert scene(client).headers["X-Frame"] == "1"
+
+    post_ok(client, "/api/step", {"count": 240})  # one second: the arm reaches out
+    moved = scene(client)
+    assert moved.headers["X-Frame"] == "2"
+    assert moved.headers["X-Physics-Steps"] == "240"
+    assert moved.headers["X-Sim-Time-Ns"] == str(exact_time_ns(240))
+    assert moved.content != first.content
+
+
+def test_scene_view_renders_at_most_scene_fps(make_client: Callable[..., httpx.Client]) -> None:
+    client = make_client(rtf=None, scene_fps=0.001)  # one frame per 1000 wall seconds
+    assert scene(client).headers["X-Frame"] == "1"
+    post_ok(client, "/api/step", {"count": 24})
+    again = scene(client)  # the world moved, but the next frame is not due yet
+    assert again.headers["X-Frame"] == "1"
+    assert again.headers["X-Physics-Steps"] == "0"
+
+
+@pytest.mark.parametrize("scenario", ["husky", "cartpole"])
+def test_scene_view_of_other_scenarios(
+    make_client: Callable[..., httpx.Client], scenario: str
+) -> None:
+    client = make_client(scenario=scenario, rtf=None)
+    post_ok(client, "/api/step", {"count": 48})
+    assert scene(client).headers["X-Physics-Steps"] == "48"
+
+
+def test_scene_view_follows_episode_resets(make_client: Callable[..., httpx.Client]) -> None:
+    client = make_client(rtf=None)
+    post_ok(client, "/api/step", {"count": 240 * 12})  # past the first mission and reset
+    frame = scene(client)
+    assert int(frame.headers["X-Episode"]) >= 2
+    assert frame.headers["X-Physics-Steps"] == str(240 * 12)
+
+
+# --------------------------------------------------------------- the page
+
+
+def test_the_page_arrives_with_the_state_embedded(client: httpx.Client) -> None:
+    post_ok(client, "/api/step", {"count": 3})
+    page = client.get("/").text
+    assert "connecting" not in page
+    assert '<p id="scenario" class="muted">kuka: KUKA iiwa' in page
+    match = re.search(r'<script id="initial-state" type="application/json">(.*?)</script>', page)
+    assert match is not None
+    embedded = json.loads(match.group(1))
+    assert embedded["physics_steps"] == 3
+    assert embedded["scenario"]["name"] == "kuka"
+    assert "</" not in match.group(1)  # nothing in the JSON can close the script element
+
+
+# ------------------------------------------------ from any working directory
+
+DASHBOARD = Path(__file__).resolve().parents[1] / "examples" / "dashboard"
+
+
+def test_the_dashboard_runs_from_any_working_directory(tmp_path: Path) -> None:
+    """``python path/to/examples/dashboard`` from an unrelated folder serves, scene included."""
+    env = {key: value for key, value in os.environ.items() if key != "PYTHONPATH"}
+    command = [sys.executable, str(DASHBOARD), "--port", "0", "--paused", "--loop", "asyncio"]
+    lines: queue.Queue[str] = queue.Queue()
+    with subprocess.Popen(
+        command, cwd=tmp_path, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True
+    ) as process:
+        assert process.stderr is not None
+        reader = threading.Thread(target=_read_lines, args=(process.stderr, lines))
+        reader.start()
+        try:
+            url = _wait_for_url(process, lines)
+            with httpx.Client(base_url=url, timeout=WAIT) as client:
+                assert state(client)["scenario"]["name"] == "kuka"
+                assert post_ok(client, "/api/step", {"count": 2})["physics_steps"] == 2
+                assert scene(client).headers["X-Physics-Steps"] == "2"
+        finally:
+            process.send_signal(signal.SIGINT)
+            try:
+                process.wait(WAIT)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait(WAIT)
+            reader.join(WAIT)  # ends at the end of the log, the process being gone
+    assert process.returncode == 0
+
+
+def _read_lines(stream: Iterable[str], lines: queue.Queue[str]) -> None:
+    for line in stream:
+        lines.put(line)
+
+
+def _wait_for_url(process: subprocess.Popen[str], lines: queue.Queue[str]) -> str:
+    """The URL uvicorn logs once it listens (at most WAIT wall seconds)."""
+    deadline = time.monotonic() + WAIT
+    log: list[str] = []
+    while True:
+        remaining = deadline - time.monotonic()
+        assert remaining > 0, f"the server did not log its URL: {log}"
+        assert process.poll() is None, f"the server exited: {log}"
+        with contextlib.suppress(queue.Empty):
+            log.append(lines.get(timeout=min(remaining, 1.0)))
+            found = re.search(r"running on (http://127\.0\.0\.1:\d+)", log[-1])
+            if found:
+                return found.group(1)
+
+
+@pytest.mark.parametrize(
+    ("options", "fragment"),
+    [
+        ({"scene_fps": 0}, "scene_fps must be positive"),
+        ({"scene_size": (8, 8)}, "scene_size must be (width, height) within"),
+    ],
+)
+def test_bad_scene_settings(options: dict[str, Any], fragment: str) -> None:
+    with pytest.raises(ValueError, match=re.escape(fragment)):
+        DashboardConfig(**options)
+
+
+def test_resume_ends_a_step_under_way(make_client: Callable[..., httpx.Client]) -> None:
+    client = make_client(rtf=1.0)
+    count = 240 * 3600
+    step = StepInBackground(str(client.base_url), count)
+    wait_for(lambda s: s["stepping"] is not None, client, "the step to be under way")
+    post_ok(client, "/api/resume")
+    response = step.result()
+    assert response.status_code == 409, response.text
+    body = response.json()
+    assert body["step"]["reason"] == "interrupted"
+    assert "interrupted by a resume after" in body["error"]
+    assert body["error"].endswith("physics steps; sim time now runs freely")
+    current = state(client)
+    assert current["paused"] is False  # the resume stands: sim time runs freely
+    assert current["stepping"] is None
+
+
+def test_without_pillow_the_error_names_the_extra() -> None:
+    code = (
+        "import sys; sys.modules['PIL'] = None\n"  # as if Pillow were not installed
+        "import examples.dashboard\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=WAIT
+    )
+    assert result.returncode == 1
+    assert "scene view encodes JPEG with Pillow" in result.stderr
+    assert "pip install 'evclock[dashboard]'" in result.stderr

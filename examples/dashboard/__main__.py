@@ -1,9 +1,21 @@
-"""The command line: ``python -m examples.dashboard [--scenario kuka] [--port 8000] [--rtf 1]``.
+"""The command line: ``python examples/dashboard [--scenario kuka] [--port 8000] [--rtf 1]``.
 
-Run it from the repository root (``sims`` and ``examples`` are folders there).
+Runs from any working directory: ``python path/to/examples/dashboard``; from the repository
+root, ``python -m examples.dashboard`` works too.
 """
 
 from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+if not __package__:
+    # Run as a path (python path/to/examples/dashboard): Python put this folder first on
+    # sys.path and knows no package. Import the dashboard as the package it is, from the
+    # repository root two folders up, so its relative imports (and the render worker
+    # process, which inherits sys.path) work from any working directory.
+    sys.path[0] = str(Path(__file__).resolve().parents[2])
+    __package__ = "examples.dashboard"
 
 import argparse
 import logging
@@ -32,7 +44,7 @@ def parse_rtf(text: str) -> float | None:
 def build_parser() -> argparse.ArgumentParser:
     """The command line."""
     parser = argparse.ArgumentParser(
-        prog="python -m examples.dashboard",
+        prog="python examples/dashboard",
         description="Serve a live dashboard of a PyBullet scenario run on sim time by evclock.",
     )
     parser.add_argument("--scenario", default="kuka", choices=sorted(SCENARIOS))

@@ -6,22 +6,32 @@
                           real-time factor, the driver's lockstep overruns, per-loop
                           statistics, episodes
 ``GET  /api/history``     the sampled history the plots show, as columns
+``GET  /api/scene.jpg``   the live view of the world (JPEG), with headers ``X-Frame``,
+                          ``X-Sim-Time-Ns``, ``X-Physics-Steps``, ``X-Episode``
 ``POST /api/pause``       pause sim time; answers with the state
 ``POST /api/resume``      resume; answers with the state
 ``POST /api/step``        ``{"count": n}`` (default 1): while paused, advance exactly n
                           physics steps; answers once they are done, with the state and
-                          ``"step": {"count", "target_ns", "completed"}``
+                          ``"step": {"count", "time_ns"}``; 409 if a pause interrupted
+                          them, 504 if they took over ``step_timeout`` wall seconds (the
+                          rest are cancelled either way: nothing steps on in the background)
 ``POST /api/rtf``         ``{"rtf": k}`` (a positive number, or null: as fast as
                           possible); answers with the state
 ========================  ==========================================================
 
 Errors are JSON ``{"error": message, "type": name}``: evclock's own errors (stepping while
-running, ``rtf <= 0``, a count that is not a positive int) and malformed bodies answer 400.
+running, ``rtf <= 0``, a count that is not a positive int) and malformed bodies answer 400;
+a step that did not complete answers ``"type": "StepNotCompleted"`` with ``"step": {"count",
+"taken", "reason"}``.
+
+The page is served with the current state embedded, so it shows the simulation at once,
+before its first poll.
 """
 
 from __future__ import annotations
 
 import contextlib
+import html
 import json
 from collections.abc import AsyncIterator
 from pathlib import Path
@@ -30,16 +40,18 @@ from typing import Any
 from starlette.applications import Starlette
 from starlette.exceptions import HTTPException
 from starlette.requests import Request
-from starlette.responses import FileResponse, JSONResponse, Response
+from starlette.responses import HTMLResponse, JSONResponse, Response
 from starlette.routing import Mount, Route
 from starlette.staticfiles import StaticFiles
 
 import evclock
 
 from .config import DashboardConfig
-from .sim import SimService
+from .sim import SimService, StepNotCompleted
 
 STATIC = Path(__file__).resolve().parent / "static"
+PAGE = STATIC / "index.html"
+"""The page template: ``{{ scenario }}`` (HTML text) and ``{{ state_json }}`` are filled in."""
 _NO_CACHE = {"Cache-Control": "no-store"}
 
 
@@ -66,9 +78,24 @@ def _state_response(service: SimService, **extra: Any) -> JSONResponse:
     return JSONResponse({**service.state(), **extra}, headers=_NO_CACHE)
 
 
+def _embed_json(value: Any) -> str:
+    """``value`` as JSON that is safe inside an HTML ``<script>`` element."""
+    text = json.dumps(value, allow_nan=False)
+    return text.replace("<", "\\u003c").replace(">", "\\u003e").replace("&", "\\u0026")
+
+
 async def index(request: Request) -> Response:
-    """The dashboard page."""
-    return FileResponse(STATIC / "index.html", headers=_NO_CACHE)
+    """The dashboard page, with the current state embedded (no "connecting..." wait)."""
+    state = _service(request).state()
+    page = PAGE.read_text(encoding="utf-8")
+    page = page.replace("{{ scenario }}", html.escape(_scenario_line(state)))
+    page = page.replace("{{ state_json }}", _embed_json(state))
+    return HTMLResponse(page, headers=_NO_CACHE)
+
+
+def _scenario_line(state: dict[str, Any]) -> str:
+    scenario = state["scenario"]
+    return f"{scenario['name']}: {scenario['description']}"
 
 
 async def get_state(request: Request) -> Response:
@@ -79,6 +106,19 @@ async def get_state(request: Request) -> Response:
 async def get_history(request: Request) -> Response:
     """``GET /api/history``."""
     return JSONResponse(_service(request).history(), headers=_NO_CACHE)
+
+
+async def get_scene(request: Request) -> Response:
+    """``GET /api/scene.jpg``: the latest frame of the scene view."""
+    frame = await _service(request).scene.frame()
+    headers = {
+        **_NO_CACHE,
+        "X-Frame": str(frame.number),
+        "X-Sim-Time-Ns": str(frame.sim_time_ns),
+        "X-Physics-Steps": str(frame.physics_steps),
+        "X-Episode": str(frame.episode),
+    }
+    return Response(frame.jpeg, media_type="image/jpeg", headers=headers)
 
 
 async def post_pause(request: Request) -> Response:
@@ -100,8 +140,7 @@ async def post_step(request: Request) -> Response:
     service = _service(request)
     body = await _json_object(request)
     result = await service.step(body.get("count", 1))
-    step = {"count": result.count, "target_ns": result.target_ns, "completed": result.completed}
-    return _state_response(service, step=step)
+    return _state_response(service, step={"count": result.count, "time_ns": result.time_ns})
 
 
 async def post_rtf(request: Request) -> Response:
@@ -120,6 +159,14 @@ def _error(status: int, message: str, kind: str) -> JSONResponse:
 
 async def _evclock_error(request: Request, exc: Exception) -> Response:
     return _error(400, str(exc), type(exc).__name__)
+
+
+async def _step_not_completed(request: Request, exc: Exception) -> Response:
+    assert isinstance(exc, StepNotCompleted)
+    status = 409 if exc.reason == "interrupted" else 504
+    step = {"count": exc.count, "taken": exc.taken, "reason": exc.reason}
+    body = {"error": str(exc), "type": "StepNotCompleted", "step": step}
+    return JSONResponse(body, status_code=status, headers=_NO_CACHE)
 
 
 async def _http_error(request: Request, exc: Exception) -> Response:
@@ -141,11 +188,16 @@ def create_app(config: DashboardConfig | None = None) -> Starlette:
         Route("/", index),
         Route("/api/state", get_state),
         Route("/api/history", get_history),
+        Route("/api/scene.jpg", get_scene),
         Route("/api/pause", post_pause, methods=["POST"]),
         Route("/api/resume", post_resume, methods=["POST"]),
         Route("/api/step", post_step, methods=["POST"]),
         Route("/api/rtf", post_rtf, methods=["POST"]),
         Mount("/static", StaticFiles(directory=STATIC), name="static"),
     ]
-    handlers = {evclock.EvClockError: _evclock_error, HTTPException: _http_error}
+    handlers = {
+        evclock.EvClockError: _evclock_error,
+        StepNotCompleted: _step_not_completed,
+        HTTPException: _http_error,
+    }
     return Starlette(routes=routes, lifespan=lifespan, exception_handlers=handlers)

@@ -16,7 +16,7 @@ class DashboardConfig:
     """
 
     scenario: str = "kuka"
-    """Name of a scenario in :data:`sims.SCENARIOS`."""
+    """Name of a scenario in :data:`evclock_sims.SCENARIOS`."""
     seed: int = 0
     """Seed of the first episode; each following episode uses the next seed."""
     rtf: float | None = 1.0
@@ -34,13 +34,24 @@ class DashboardConfig:
     history_size: int = 480
     """Samples kept for the plots (480 x 0.25 s: the last two minutes)."""
     step_timeout: float = 30.0
-    """Wall seconds ``POST /api/step`` waits for its steps before answering anyway."""
+    """Wall seconds ``POST /api/step`` may take; steps not taken by then are cancelled and
+    the request answers 504."""
+    scene_fps: float = 5.0
+    """Most frames of the scene view rendered per wall second (in a worker process)."""
+    scene_size: tuple[int, int] = (320, 240)
+    """Width and height of the scene view, pixels."""
 
     def __post_init__(self) -> None:
         get_scenario(self.scenario)  # ValueError listing the valid names
-        for name in ("episode_gap", "episode_limit", "sample_period", "step_timeout"):
+        for name in ("episode_gap", "episode_limit", "sample_period", "step_timeout", "scene_fps"):
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"{name} must be positive, got {value!r}")
         if self.history_size < 2:
             raise ValueError(f"history_size must be at least 2, got {self.history_size!r}")
+        width, height = self.scene_size
+        if not (16 <= width <= 1920 and 16 <= height <= 1080):
+            raise ValueError(
+                f"scene_size must be (width, height) within 16x16 .. 1920x1080, "
+                f"got {self.scene_size!r}"
+            )

@@ -15,8 +15,9 @@ import dataclasses
 import logging
 import math
 import time
+from collections.abc import Sequence
 from types import TracebackType
-from typing import Any, cast
+from typing import Any, Literal, cast
 
 import pybullet as p
 from evclock_sims import Scenario, get_scenario
@@ -24,6 +25,7 @@ from evclock_sims import Scenario, get_scenario
 from evclock import PyBulletTimeSource, Rate, SimDriver
 
 from .config import DashboardConfig
+from .scene import SceneView, WorldPose, camera_for, read_world_pose
 
 log = logging.getLogger(__name__)
 
@@ -46,8 +48,8 @@ class Episode:
     scenario: Scenario
     started_at: float
     """Sim seconds at the start."""
-    first_rate: int
-    """Index of this episode's first rate in ``clock.rates``."""
+    earlier_rates: tuple[Rate, ...]
+    """The clock's rate loops when the episode started: the episode's own are the others."""
     ended_at: float | None = None
     outcome: str = "running"
     """``running``, ``success``, ``failure``, ``timeout`` or ``error``."""
@@ -87,9 +89,42 @@ class StepResult:
     """What ``POST /api/step`` reports besides the state."""
 
     count: int
-    target_ns: int
-    completed: bool
-    """False if the steps were still under way after ``config.step_timeout`` wall seconds."""
+    time_ns: int
+    """Sim time once the steps were taken."""
+
+
+class StepNotCompleted(Exception):
+    """A ``step()`` that ended before its steps were all taken; nothing keeps stepping.
+
+    ``reason`` is ``"interrupted"`` (a pause or a resume meanwhile, which ends the remaining
+    steps) or ``"timeout"`` (still under way after ``config.step_timeout`` wall seconds: the
+    rest were cancelled).
+    """
+
+    def __init__(
+        self, reason: Literal["interrupted", "timeout"], count: int, taken: int, message: str
+    ) -> None:
+        super().__init__(message)
+        self.reason = reason
+        self.count = count
+        self.taken = taken
+
+
+@dataclasses.dataclass(slots=True)
+class _Stepping:
+    """A ``step()`` under way: its request, progress and how it may end early."""
+
+    count: int
+    first: int
+    """``physics_steps`` when it started."""
+    done: asyncio.Event
+    interrupted: asyncio.Event
+    interrupted_by: Literal["pause", "resume", ""] = ""
+    """The control that interrupted it, if any."""
+
+    def interrupt(self, control: Literal["pause", "resume"]) -> None:
+        self.interrupted_by = control
+        self.interrupted.set()
 
 
 class SimService:
@@ -118,6 +153,16 @@ class SimService:
         self._achieved_rtf: float | None = None
         self._steps_before_reset = 0
         self._step_lock = asyncio.Lock()
+        self._stepping: _Stepping | None = None
+        self.scene = SceneView(
+            self._scene_progress,
+            self._read_world_pose,
+            lambda: self.driver.now_ns,
+            camera_for(config.scenario),
+            fps=config.scene_fps,
+            size=config.scene_size,
+        )
+        """The live view of the world (rendered in a worker process on demand)."""
 
     # ---------------------------------------------------------------- lifecycle
 
@@ -143,6 +188,7 @@ class SimService:
             raise RuntimeError("could not connect a PyBullet DIRECT client")
         self._client = client
         self._stack.callback(self._disconnect)
+        self._stack.callback(self.scene.close)
         scenario = self._scenario_cls(client, self.config.seed)  # sets the 1/240 s time step
         self._source = source = PyBulletTimeSource(client)
         driver = SimDriver(source, rtf=self.config.rtf, paused=self.config.paused)
@@ -182,7 +228,7 @@ class SimService:
 
     def _new_episode(self, number: int, seed: int, scenario: Scenario) -> Episode:
         clock = self.driver.clock
-        return Episode(number, seed, scenario, clock.now().seconds, len(clock.rates))
+        return Episode(number, seed, scenario, clock.now().seconds, clock.rates)
 
     async def _run_episodes(self) -> None:
         try:
@@ -228,9 +274,31 @@ class SimService:
             episode.outcome = "success" if episode.scenario.success() else "failure"
 
     def current_rates(self) -> tuple[Rate, ...]:
-        """The rate loops of the current episode, in creation order."""
-        first = self._episode.first_rate if self._episode is not None else 0
-        return self.driver.clock.rates[first:]
+        """The rate loops of the current episode, in creation order.
+
+        ``clock.rates`` keeps the latest loop of each name, so the next episode's loops
+        replace this one's: they are the loops that were not there when it started.
+        """
+        rates = self.driver.clock.rates
+        if self._episode is None:
+            return rates
+        earlier = self._episode.earlier_rates
+        return tuple(rate for rate in rates if not any(rate is old for old in earlier))
+
+    @property
+    def episode(self) -> Episode | None:
+        """The episode running now (or, with ``repeat=False``, the one that ran)."""
+        return self._episode
+
+    def _scene_progress(self) -> tuple[int, int]:
+        episode = self._episode
+        assert episode is not None
+        return self.physics_steps, episode.number
+
+    def _read_world_pose(self) -> WorldPose:
+        episode = self._episode
+        assert episode is not None
+        return read_world_pose(self._client, episode.scenario, episode.number)
 
     # ------------------------------------------------------------------ history
 
@@ -286,6 +354,7 @@ class SimService:
             "physics_steps": self.physics_steps,
             "time_step_s": source.time_step,
             "paused": driver.paused,
+            "stepping": self._stepping_info(),
             "rtf": driver.rtf,
             "achieved_rtf": finite(self._achieved_rtf),
             "lockstep_overruns": driver.lockstep_overruns,
@@ -297,12 +366,16 @@ class SimService:
     # ------------------------------------------------------------------ controls
 
     def pause(self) -> None:
-        """Stop sim time (the HTTP server keeps serving)."""
+        """Stop sim time (the HTTP server keeps serving); cancels a step under way."""
         self.driver.pause()
+        if self._stepping is not None:
+            self._stepping.interrupt("pause")
 
     def resume(self) -> None:
-        """Let sim time advance again at the requested rtf."""
+        """Let sim time advance again at the requested rtf; ends a step under way."""
         self.driver.resume()
+        if self._stepping is not None:
+            self._stepping.interrupt("resume")
 
     def set_rtf(self, rtf: object) -> None:
         """Change the requested real-time factor (None: as fast as possible).
@@ -312,22 +385,78 @@ class SimService:
         self.driver.rtf = rtf  # type: ignore[assignment]
 
     async def step(self, count: object = 1) -> StepResult:
-        """While paused, advance exactly ``count`` physics steps and wait until they are done.
+        """While paused, advance exactly ``count`` physics steps; return once they are taken.
 
-        Waits at most ``config.step_timeout`` wall seconds (the steps go on after that).
-        ``count`` is passed to evclock unchecked (it raises for a bad count or when running).
+        Returns after the work due at the final time has run (the controllers' ticks there),
+        so the state read next shows it. Steps are paced at the requested rtf and counted
+        across episode resets. Raises :class:`StepNotCompleted` if a :meth:`pause` cancels
+        the remaining steps or a :meth:`resume` ends them (sim time then runs freely), or if
+        they are not all taken within ``config.step_timeout`` wall seconds (the rest are then
+        cancelled: nothing goes on stepping). Concurrent calls take their turns. ``count``
+        is passed to evclock unchecked (it raises for a bad count or when running).
         """
         async with self._step_lock:
             driver = self.driver
             driver.step(count)  # type: ignore[arg-type]
             steps = cast(int, count)  # evclock accepted it: an int >= 1
-            target = self.source.time_of_step(steps)
+            stepping = _Stepping(steps, self.physics_steps, asyncio.Event(), asyncio.Event())
+            hook = self.source.add_step_hook(lambda: self._count_step(stepping))
+            self._stepping = stepping
             try:
-                async with asyncio.timeout(self.config.step_timeout):  # wall time
-                    await driver.clock.sleep_until(target)  # sim time
-            except TimeoutError:
-                return StepResult(steps, target.nanoseconds, completed=False)
-            return StepResult(steps, target.nanoseconds, completed=True)
+                ended = await _first_of(
+                    stepping.done, stepping.interrupted, timeout=self.config.step_timeout
+                )
+            finally:
+                hook.remove()
+                self._stepping = None
+            taken = self.physics_steps - stepping.first
+            if ended is stepping.done:
+                await driver.clock.sleep(0)  # after the ticks due at this time
+                return StepResult(steps, driver.now_ns)
+            if ended is stepping.interrupted:
+                raise StepNotCompleted(
+                    "interrupted",
+                    steps,
+                    taken,
+                    f"the step was interrupted by a {stepping.interrupted_by} after {taken} of "
+                    f"{steps} physics steps; "
+                    + (
+                        "the remaining ones were cancelled"
+                        if stepping.interrupted_by == "pause"
+                        else "sim time now runs freely"
+                    ),
+                )
+            driver.pause()  # cancels the remaining steps
+            rtf = "as fast as possible" if driver.rtf is None else f"rtf={driver.rtf:g}"
+            raise StepNotCompleted(
+                "timeout",
+                steps,
+                taken,
+                f"only {taken} of {steps} physics steps were taken in "
+                f"{self.config.step_timeout:g} s of wall time at {rtf}; the remaining ones "
+                "were cancelled; step fewer at a time, raise the rtf, or raise step_timeout",
+            )
+
+    def _count_step(self, stepping: _Stepping) -> None:
+        """A step hook: mark the step request done at its last physics step."""
+        if self.physics_steps - stepping.first >= stepping.count:
+            stepping.done.set()
+
+    def _stepping_info(self) -> dict[str, int] | None:
+        stepping = self._stepping
+        if stepping is None:
+            return None
+        return {"count": stepping.count, "taken": self.physics_steps - stepping.first}
+
+
+async def _first_of(*events: asyncio.Event, timeout: float) -> asyncio.Event | None:
+    """The first of ``events`` to be set (checked in order), or None after ``timeout`` wall s."""
+    waits = [asyncio.ensure_future(event.wait()) for event in events]
+    try:
+        await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+    finally:
+        await _cancel_all(waits)
+    return next((event for event in events if event.is_set()), None)
 
 
 def _rate_info(rate: Rate) -> dict[str, Any]:
@@ -341,7 +470,7 @@ def _rate_info(rate: Rate) -> dict[str, Any]:
     }
 
 
-async def _cancel_all(tasks: list[asyncio.Future[Any]]) -> None:
+async def _cancel_all(tasks: Sequence[asyncio.Future[Any]]) -> None:
     """Cancel ``tasks`` and wait until they are done (their errors are theirs to report)."""
     for task in tasks:
         task.cancel()

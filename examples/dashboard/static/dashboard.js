@@ -4,12 +4,13 @@
 
 const STATE_PERIOD_MS = 250;
 const HISTORY_PERIOD_MS = 1000;
+const SCENE_PERIOD_MS = 200; // the server renders at most its scene_fps whatever we ask
 const COLORS = ["#2563eb", "#d92d20", "#039855", "#dc6803", "#7a5af8", "#0e9384"];
 
 const $ = (id) => document.getElementById(id);
 const controls = () => document.querySelectorAll(".controls button, .controls input");
 
-let busy = false; // a control request is in flight
+let busy = 0; // control requests in flight (a pause may be sent while a step is)
 let renders = 0; // counted in <body data-renders>: lets tests wait for fresh data
 let lastState = null;
 let generation = 0; // bumped by each control: polls sent before it are stale
@@ -32,7 +33,9 @@ async function api(method, path, body) {
   }
   if (!response.ok) {
     const message = data && data.error ? data.error : `${response.status} ${response.statusText}`;
-    throw new Error(message);
+    const error = new Error(message);
+    error.data = data;
+    throw error;
   }
   return data;
 }
@@ -94,8 +97,11 @@ function render(state) {
   $("sim-time").textContent = `${state.sim_time_s.toFixed(6)} s`;
   $("physics-steps").textContent = String(state.physics_steps);
   const runState = $("run-state");
-  runState.textContent = state.paused ? "paused" : "running";
-  runState.classList.toggle("paused", state.paused);
+  const stepping = state.stepping;
+  runState.textContent = stepping
+    ? `stepping ${stepping.taken}/${stepping.count}`
+    : state.paused ? "paused" : "running";
+  runState.classList.toggle("paused", state.paused && !stepping);
   $("lockstep-overruns").textContent = String(state.lockstep_overruns);
   $("achieved-rtf").textContent = factor(state.achieved_rtf);
   $("requested-rtf").textContent = state.rtf == null ? "max" : factor(state.rtf);
@@ -177,22 +183,56 @@ function poll(path, period, apply) {
   tick();
 }
 
+// ---------------------------------------------------------------- scene
+
+// Fetch the next frame once the previous one is shown; <img data-frame> counts frames.
+async function refreshScene() {
+  try {
+    const response = await fetch("/api/scene.jpg", { cache: "no-store" });
+    if (!response.ok) throw new Error(`${response.status} ${response.statusText}`);
+    const frame = response.headers.get("X-Frame");
+    const image = $("scene");
+    if (frame !== image.dataset.frame) {
+      const url = URL.createObjectURL(await response.blob());
+      await new Promise((resolve, reject) => {
+        image.onload = resolve;
+        image.onerror = () => reject(new Error("the scene frame could not be decoded"));
+        image.src = url;
+      });
+      if (image.dataset.url) URL.revokeObjectURL(image.dataset.url);
+      image.dataset.url = url;
+      image.dataset.frame = frame;
+      image.dataset.steps = response.headers.get("X-Physics-Steps");
+      const simTime = Number(response.headers.get("X-Sim-Time-Ns")) / 1e9;
+      $("scene-time").textContent = `${simTime.toFixed(3)} s`;
+    }
+  } catch (error) {
+    showError(`scene: ${error.message}`);
+  }
+  setTimeout(refreshScene, SCENE_PERIOD_MS);
+}
+
 // ------------------------------------------------------------- controls
 
 async function control(path, body) {
-  busy = true;
+  busy += 1;
   controls().forEach((element) => { element.disabled = true; });
+  if (path === "/api/step") $("pause").disabled = false; // a pause cancels a long step
   try {
     const state = await api("POST", path, body);
     generation += 1;
     showError("");
     render(state);
   } catch (error) {
-    showError(error.message);
+    const step = error.data && error.data.step;
+    // A step the user interrupted (Pause) is no error: the state shows where it stopped.
+    showError(step && step.reason === "interrupted" ? "" : error.message);
   } finally {
-    busy = false;
-    if (lastState) updateButtons(lastState);
-    else controls().forEach((element) => { element.disabled = false; });
+    busy -= 1;
+    if (busy === 0) {
+      if (lastState) updateButtons(lastState);
+      else controls().forEach((element) => { element.disabled = false; });
+    }
   }
 }
 
@@ -212,5 +252,8 @@ for (const button of document.querySelectorAll(".rtf-preset")) {
   });
 }
 
+// The page arrives with the state embedded: show it at once, then keep it fresh.
+render(JSON.parse($("initial-state").textContent));
 poll("/api/state", STATE_PERIOD_MS, render);
+refreshScene();
 poll("/api/history", HISTORY_PERIOD_MS, updatePlots);
