@@ -87,3 +87,15 @@ class PhysicsError(EvClockError, RuntimeError):
 
 class SimTimeLimitError(EvClockError):
     """A run or a test exceeded its sim-time limit."""
+
+
+class ScenarioError(EvClockError, RuntimeError):
+    """A scenario cannot be found or loaded: an import failure, a name registered twice."""
+
+
+class MissingExtraError(EvClockError, ImportError):
+    """An optional feature was used without its extra installed; the message names the extra."""
+
+
+class TraceError(EvClockError, ValueError):
+    """A recorded trace (MCAP file) cannot be read, or is not an evclock recording."""
