@@ -93,9 +93,9 @@ def parse_params(scenario: str, assignments: list[str]) -> dict[str, list[ParamV
     return values
 
 
-def error_console() -> Console:
-    """Where commands print their one-line errors."""
-    return Console(stderr=True)
+def print_error(exc: EvClockError) -> None:
+    """Print ``error: <message>`` on stderr (the message verbatim, never read as markup)."""
+    Console(stderr=True).print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
 
 
 def _ms(seconds: float | int) -> str:
@@ -181,7 +181,7 @@ def list_scenarios() -> None:
             cls = entry.load()
             table.add_row(entry.name, f"{cls.default_until:g}", cls.description, entry.distribution)
     except EvClockError as exc:
-        error_console().print(f"[red]error:[/red] {exc}")
+        print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
     Console().print(table)
 
@@ -263,7 +263,7 @@ def run_command(
                 progress=progress,
             )
     except EvClockError as exc:
-        error_console().print(f"[red]error:[/red] {exc}", soft_wrap=True)
+        print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
     render_report(report, console)
     if json_out is not None:

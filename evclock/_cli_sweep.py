@@ -31,8 +31,8 @@ from ._cli import (
     EXIT_USAGE,
     app,
     check_writable,
-    error_console,
     parse_params,
+    print_error,
 )
 from ._errors import EvClockError, InvalidArgumentError
 from ._sweep import BACKENDS, SweepResult, SweepRow, parse_seeds, plan, sweep
@@ -158,7 +158,7 @@ def sweep_command(
                 on_idle=display.idle,
             )
     except EvClockError as exc:
-        error_console().print(f"[red]error:[/red] {exc}", soft_wrap=True)
+        print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
     render_sweep(result, console)
     if json_out is not None:

@@ -13,7 +13,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-from ._cli import EXIT_FAILED, EXIT_SUCCESS, EXIT_USAGE, app, check_writable, error_console
+from ._cli import EXIT_FAILED, EXIT_SUCCESS, EXIT_USAGE, app, check_writable, print_error
 from ._errors import EvClockError
 
 trace_app = typer.Typer(help="Inspect recorded runs (MCAP files from evclock run --record).")
@@ -32,7 +32,7 @@ def diff_command(
     try:
         left, right = read_trace(a), read_trace(b)
     except EvClockError as exc:
-        error_console().print(f"[red]error:[/red] {exc}", soft_wrap=True)
+        print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
     divergence = first_divergence(left, right)
     if divergence is None:
@@ -57,6 +57,6 @@ def plot_command(
         figure_class()
         plot_run(read_trace(recording), output)
     except EvClockError as exc:
-        error_console().print(f"[red]error:[/red] {exc}", soft_wrap=True)
+        print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
     Console().print(f"wrote {output}")

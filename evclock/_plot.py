@@ -37,24 +37,25 @@ def figure_class() -> Any:
 
 
 def plot_run(trace: Trace, output: Path) -> None:
-    """Lateness per loop and achieved rtf, both over sim time, as a PNG."""
+    """One panel per rate loop (tick lateness over sim time), then the achieved rtf, as a
+    PNG; all panels share the sim-time axis."""
     loops = [t for t in trace.topics if t.startswith("/evclock/loop/")]
     if not loops:
         raise TraceError(f"{str(trace.path)!r} records no rate loop: nothing to plot")
-    figure = figure_class()(figsize=(10, 7), dpi=100)
-    lateness_axes, rtf_axes = figure.subplots(2, 1, sharex=True)
-    for i, topic in enumerate(loops):
+    figure = figure_class()(figsize=(10, 2.2 * (len(loops) + 1)), dpi=100)
+    axes = figure.subplots(len(loops) + 1, 1, sharex=True, squeeze=False)[:, 0]
+    for i, (ax, topic) in enumerate(zip(axes, loops, strict=False)):
         messages = trace.topic(topic)
-        lateness_axes.plot(
+        ax.plot(
             [m.time_ns / 1e9 for m in messages],
             [m.data["lateness_s"] * 1e3 for m in messages],
             color=PALETTE[i % len(PALETTE)],
             linewidth=1.5,
-            label=topic.removeprefix("/evclock/loop/"),
+            marker=".",
         )
-    lateness_axes.set_ylabel("tick lateness (ms)")
-    lateness_axes.set_title("rate loops: lateness of each tick")
-    lateness_axes.legend(loc="upper right")
+        ax.set_ylabel("late (ms)")
+        ax.set_title(f"{topic.removeprefix('/evclock/loop/')}: lateness of each tick", fontsize=9)
+    rtf_axes = axes[-1]
     samples = [m for m in trace.topic("/evclock/clock") if m.data.get("achieved_rtf") is not None]
     rtf_axes.plot(
         [m.time_ns / 1e9 for m in samples],
@@ -62,9 +63,9 @@ def plot_run(trace: Trace, output: Path) -> None:
         color=RTF_COLOR,
         linewidth=1.5,
     )
-    rtf_axes.set_ylabel("achieved real-time factor")
+    rtf_axes.set_title("achieved real-time factor (per 0.05 s of sim time)", fontsize=9)
+    rtf_axes.set_ylabel("rtf")
     rtf_axes.set_xlabel("sim time (s)")
-    rtf_axes.set_yscale("log" if len(samples) > 1 else "linear")
     figure.tight_layout()
     figure.savefig(output, format="png")
 
