@@ -82,7 +82,7 @@ def render_sweep(result: SweepResult, console: Console) -> None:
     summary = result.summary()
     rate = summary["success_rate"]
     counts = ", ".join(f"{n} {status}" for status, n in summary["status_counts"].items())
-    head = f"{result.scenario}: {summary['done']}/{summary['planned']} runs ({counts})"
+    head = f"{result.name}: {summary['done']}/{summary['planned']} runs ({counts})"
     if result.interrupted:
         head += " [yellow]interrupted[/yellow]"
     console.print(head)

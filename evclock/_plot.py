@@ -90,6 +90,6 @@ def plot_sweep(result: SweepResult, output: Path) -> None:
         ax.set_ylabel("runs")
     for ax in list(axes.flat)[len(fields) :]:
         ax.set_visible(False)
-    figure.suptitle(f"{result.scenario}: {len(result.rows)} runs")
+    figure.suptitle(f"{result.name}: {len(result.rows)} runs")
     figure.tight_layout()
     figure.savefig(output, format="png")

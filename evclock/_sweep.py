@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
-from ._scenarios import ParamValue
+from ._scenarios import ParamValue, load_scenario
 
 Backend = Literal["local", "ray"]
 BACKENDS: tuple[Backend, ...] = ("local", "ray")
@@ -98,6 +98,9 @@ class SweepResult:
     """Every finished row, in plan order, and whether the sweep was interrupted."""
 
     scenario: str
+    """The scenario as given (a name, a file, module:Class)."""
+    name: str
+    """The scenario class's ``name``."""
     planned: int
     rows: list[SweepRow]
     interrupted: bool
@@ -130,6 +133,7 @@ class SweepResult:
         """Plain JSON data: the summary and every row."""
         return {
             "scenario": self.scenario,
+            "name": self.name,
             "summary": self.summary(),
             "rows": [row.to_json() for row in self.rows],
         }
@@ -365,6 +369,7 @@ def sweep(
     if not specs:
         raise InvalidArgumentError("nothing to sweep: no runs planned")
     specs = [_absolute(spec) for spec in specs]
+    name = str(load_scenario(specs[0].scenario).name)
     row_done: OnRow = on_row or (lambda row: None)
     idle: OnIdle = on_idle or (lambda: None)
     rows: dict[int, SweepRow] = {}
@@ -379,7 +384,7 @@ def sweep(
         interrupted = True
     ordered = [rows[i] for i in sorted(rows)]
     return SweepResult(
-        specs[0].scenario, len(specs), ordered, interrupted, time.perf_counter() - wall0
+        specs[0].scenario, name, len(specs), ordered, interrupted, time.perf_counter() - wall0
     )
 
 
