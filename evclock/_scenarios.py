@@ -130,6 +130,11 @@ def _load_from_file(text: str) -> type[Any]:
     return classes[0]
 
 
+def is_file_reference(spec: str) -> bool:
+    """Whether ``spec`` names a Python file (``path.py`` or ``path.py:Class``)."""
+    return spec.endswith(".py") or ".py:" in spec or "/" in spec or "\\" in spec
+
+
 def load_scenario(spec: str, *, what: str | None = None) -> type[Any]:
     """The scenario class ``spec`` names.
 
@@ -140,7 +145,7 @@ def load_scenario(spec: str, *, what: str | None = None) -> type[Any]:
     if not isinstance(spec, str):
         raise InvalidTypeError(f"a scenario is named by a string, got {type(spec).__name__}")
     label = what or f"{spec!r}"
-    if spec.endswith(".py") or ".py:" in spec or "/" in spec or "\\" in spec:
+    if is_file_reference(spec):
         return _load_from_file(spec)
     if ":" in spec:
         module_name, _, attribute = spec.partition(":")

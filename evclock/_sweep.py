@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
-from ._scenarios import ParamValue, load_scenario
+from ._scenarios import ParamValue, is_file_reference, load_scenario
 
 Backend = Literal["local", "ray"]
 BACKENDS: tuple[Backend, ...] = ("local", "ray")
@@ -241,7 +241,12 @@ def _run_local(
     specs: list[RunSpec], workers: int, rows: dict[int, SweepRow], on_row: OnRow, on_idle: OnIdle
 ) -> None:
     context = multiprocessing.get_context("forkserver")
-    context.set_forkserver_preload(["evclock._runs", "evclock._sweep", "pybullet"])
+    preload = ["evclock._runs", "evclock._sweep", "pybullet"]
+    if not is_file_reference(specs[0].scenario):
+        # The scenario's module is importable by name: import it once, in the server every
+        # worker is forked from.
+        preload.append(load_scenario(specs[0].scenario).__module__)
+    context.set_forkserver_preload(preload)
     pending = collections.deque(enumerate(specs))
     running: dict[int, tuple[Any, multiprocessing.connection.Connection]] = {}
     try:

@@ -114,34 +114,34 @@ def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
     png = tmp_path / "sweep.png"
     result = runner.invoke(
         app,
-        ["sweep", SHUTTLE, "--seeds", "0:4", "--param", "gain=3,4", "--workers", "2",
+        ["sweep", SHUTTLE, "--seeds", "0:3", "--param", "gain=3,4", "--workers", "2",
          "--json", str(out), "--plot", str(png), "--quiet"],
     )  # fmt: skip
     assert result.exit_code == 0, result.output
     text = " ".join(result.output.split())
-    assert "shuttle: 8/8 runs (8 success)" in text
+    assert "shuttle: 6/6 runs (6 success)" in text
     assert "success rate 100.0%" in text
     assert "final_error_m" in text
     data = json.loads(out.read_text())
     rows = data["rows"]
     assert [(r["params"]["gain"], r["seed"]) for r in rows] == [
-        (g, s) for g in (3.0, 4.0) for s in range(4)
+        (g, s) for g in (3.0, 4.0) for s in range(3)
     ]
     assert data["summary"]["success_rate"] == 1.0
     assert set(data["summary"]["quantiles"]) >= {"target_m", "final_error_m", "sim_time_s"}
-    # Seed 3 through the real command, in another process: the same figures, bit for bit.
+    # Seed 2 through the real command, in another process: the same figures, bit for bit.
     single = tmp_path / "single.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "evclock", "run", SHUTTLE, "--seed", "3", "--param", "gain=4",
+        [sys.executable, "-m", "evclock", "run", SHUTTLE, "--seed", "2", "--param", "gain=4",
          "--json", str(single), "--quiet"],
         capture_output=True, text=True, timeout=TIMEOUT, check=False,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
     expected = json.loads(single.read_text())
-    assert rows[7]["report"]["final_state"] == expected["final_state"]
-    assert rows[7]["report"]["summary"] == expected["summary"]
-    assert rows[7]["report"]["sim_time_s"] == expected["sim_time_s"]
-    for row in rows[:4]:
+    assert rows[5]["report"]["final_state"] == expected["final_state"]
+    assert rows[5]["report"]["summary"] == expected["summary"]
+    assert rows[5]["report"]["sim_time_s"] == expected["sim_time_s"]
+    for row in rows[:2]:
         report = evclock.run_scenario(SHUTTLE, seed=row["seed"], params={"gain": 3.0})
         assert row["report"]["final_state"] == report.final_state
     # The histogram PNG: bars drawn for every numeric field.
@@ -216,16 +216,15 @@ def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_pat
 def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "ray.json"
     proc = subprocess.run(
-        [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "0:4", "--backend", "ray",
+        [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "0:3", "--backend", "ray",
          "--workers", "2", "--json", str(out), "--quiet"],
         capture_output=True, text=True, timeout=TIMEOUT, check=False,
         env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"},
     )  # fmt: skip
     assert proc.returncode == 1, proc.stdout + proc.stderr
     rows = _rows_by_seed(out)
-    assert [rows[s]["status"] for s in range(4)] == ["success", "error", "error", "success"]
+    assert [rows[s]["status"] for s in range(3)] == ["success", "error", "error"]
     assert str(rows[1]["error"]).startswith("ray task failed: ")
     assert rows[2]["error"] == "RuntimeError: boom at seed 2"
-    for seed in (0, 3):
-        report = evclock.run_scenario(fragile, seed=seed)
-        assert rows[seed]["report"]["final_state"] == report.final_state  # type: ignore[index]
+    report = evclock.run_scenario(fragile, seed=0)
+    assert rows[0]["report"]["final_state"] == report.final_state  # type: ignore[index]
