@@ -125,6 +125,10 @@ def sweep_command(
         str | None,
         typer.Option(help="Ray cluster address (ray backend; default: start a local Ray)."),
     ] = None,
+    run_timeout: Annotated[
+        float | None,
+        typer.Option(help="Wall seconds a run may take; a run still going is stopped (a row)."),
+    ] = None,
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Write the summary and every row as JSON.")
     ] = None,
@@ -154,6 +158,7 @@ def sweep_command(
                 backend=backend,
                 workers=workers,
                 address=address,
+                run_timeout=run_timeout,
                 on_row=display.row_done,
                 on_idle=display.idle,
             )

@@ -237,8 +237,26 @@ OnRow = Callable[[SweepRow], None]
 OnIdle = Callable[[], None]
 
 
+def _timed_out(timeout: float) -> dict[str, Any]:
+    return {"error": f"timed out after {timeout:g} s of wall time (--run-timeout); stopped"}
+
+
+def _stop(process: Any) -> None:
+    """Terminate a worker; kill it if it does not exit within the grace period."""
+    process.terminate()
+    process.join(_STOP_GRACE_S)
+    if process.is_alive():
+        process.kill()
+        process.join(_STOP_GRACE_S)
+
+
 def _run_local(
-    specs: list[RunSpec], workers: int, rows: dict[int, SweepRow], on_row: OnRow, on_idle: OnIdle
+    specs: list[RunSpec],
+    workers: int,
+    run_timeout: float | None,
+    rows: dict[int, SweepRow],
+    on_row: OnRow,
+    on_idle: OnIdle,
 ) -> None:
     context = multiprocessing.get_context("forkserver")
     preload = ["evclock._runs", "evclock._sweep", "pybullet"]
@@ -249,6 +267,7 @@ def _run_local(
     context.set_forkserver_preload(preload)
     pending = collections.deque(enumerate(specs))
     running: dict[int, tuple[Any, multiprocessing.connection.Connection]] = {}
+    started: dict[int, float] = {}
     try:
         while pending or running:
             while pending and len(running) < workers:
@@ -260,6 +279,7 @@ def _run_local(
                 process.start()
                 sender.close()
                 running[index] = (process, receiver)
+                started[index] = time.monotonic()
             waitables = [p.sentinel for p, _ in running.values()]
             waitables += [r for _, r in running.values()]
             multiprocessing.connection.wait(waitables, timeout=_POLL_S)
@@ -267,7 +287,10 @@ def _run_local(
                 process, receiver = running[index]
                 outcome = _poll(process, receiver)
                 if outcome is None:
-                    continue
+                    if run_timeout is None or time.monotonic() - started[index] < run_timeout:
+                        continue
+                    _stop(process)
+                    outcome = _timed_out(run_timeout)
                 del running[index]
                 receiver.close()
                 process.join(_STOP_GRACE_S)
@@ -278,10 +301,7 @@ def _run_local(
         for process, _receiver in running.values():
             process.terminate()
         for process, receiver in running.values():
-            process.join(_STOP_GRACE_S)
-            if process.is_alive():
-                process.kill()
-                process.join(_STOP_GRACE_S)
+            _stop(process)
             receiver.close()
 
 
@@ -311,6 +331,7 @@ def _ray() -> Any:
 def _run_ray(
     specs: list[RunSpec],
     workers: int,
+    run_timeout: float | None,
     address: str | None,
     rows: dict[int, SweepRow],
     on_row: OnRow,
@@ -326,12 +347,22 @@ def _run_ray(
     remote = ray.remote(num_cpus=1, max_calls=1, max_retries=0)(execute)
     pending = collections.deque(enumerate(specs))
     in_flight: dict[Any, int] = {}
+    submitted: dict[Any, float] = {}
     try:
         while pending or in_flight:
             while pending and len(in_flight) < workers:
                 index, spec = pending.popleft()
-                in_flight[remote.remote(spec)] = index
+                ref = remote.remote(spec)
+                in_flight[ref] = index
+                submitted[ref] = time.monotonic()
             done, _ = ray.wait(list(in_flight), num_returns=1, timeout=_POLL_S)
+            if run_timeout is not None:
+                for ref in list(in_flight):
+                    if ref not in done and time.monotonic() - submitted[ref] >= run_timeout:
+                        ray.cancel(ref, force=True)
+                        index = in_flight.pop(ref)
+                        rows[index] = _row(specs[index], _timed_out(run_timeout))
+                        on_row(rows[index])
             for ref in done:
                 index = in_flight.pop(ref)
                 try:
@@ -355,11 +386,13 @@ def sweep(
     backend: Backend = "local",
     workers: int = 1,
     address: str | None = None,
+    run_timeout: float | None = None,
     on_row: OnRow | None = None,
     on_idle: OnIdle | None = None,
 ) -> SweepResult:
     """Run every spec (see the module docstring).
 
+    ``run_timeout`` (wall seconds) stops a run still going after it: an ``error`` row.
     ``on_row`` sees each row as it finishes; ``on_idle`` is called at least every
     0.2 s of wall time while runs are in flight (to refresh a progress display).
     """
@@ -373,6 +406,15 @@ def sweep(
         raise InvalidArgumentError("--address is the Ray cluster's: use it with --backend ray")
     if not specs:
         raise InvalidArgumentError("nothing to sweep: no runs planned")
+    if run_timeout is not None and (
+        isinstance(run_timeout, bool)
+        or not isinstance(run_timeout, int | float)
+        or not math.isfinite(run_timeout)
+        or run_timeout <= 0
+    ):
+        raise InvalidArgumentError(
+            f"--run-timeout must be a positive number of wall seconds, got {run_timeout!r}"
+        )
     specs = [_absolute(spec) for spec in specs]
     name = str(load_scenario(specs[0].scenario).name)
     row_done: OnRow = on_row or (lambda row: None)
@@ -382,9 +424,9 @@ def sweep(
     wall0 = time.perf_counter()
     try:
         if backend == "local":
-            _run_local(specs, workers, rows, row_done, idle)
+            _run_local(specs, workers, run_timeout, rows, row_done, idle)
         else:
-            _run_ray(specs, workers, address, rows, row_done, idle)
+            _run_ray(specs, workers, run_timeout, address, rows, row_done, idle)
     except KeyboardInterrupt:
         interrupted = True
     ordered = [rows[i] for i in sorted(rows)]

@@ -228,3 +228,26 @@ def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     assert rows[2]["error"] == "RuntimeError: boom at seed 2"
     report = evclock.run_scenario(fragile, seed=0)
     assert rows[0]["report"]["final_state"] == report.final_state  # type: ignore[index]
+
+
+def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    result = runner.invoke(
+        app,
+        ["sweep", fragile, "--seeds", "0,5", "--param", f"marker_dir={markers}",
+         "--run-timeout", "3", "--workers", "2", "--json", str(out), "--quiet"],
+    )  # fmt: skip
+    assert result.exit_code == 1, result.output
+    rows = _rows_by_seed(out)
+    assert rows[0]["status"] == "success"
+    assert rows[5]["error"] == "timed out after 3 s of wall time (--run-timeout); stopped"
+    worker = int((markers / "started-5").read_text())
+    deadline = time.monotonic() + 30
+    while not _gone(worker) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(worker)
+    bad = runner.invoke(app, ["sweep", fragile, "--run-timeout", "0", "--quiet"])
+    assert bad.exit_code == 2
+    assert "--run-timeout must be a positive number of wall seconds, got 0.0" in bad.output
