@@ -197,3 +197,11 @@ def test_plot_refuses_a_recording_without_loops(tmp_path: Path) -> None:
     result = runner.invoke(app, ["plot", str(empty), "-o", str(tmp_path / "x.png")])
     assert result.exit_code == 2
     assert "records no rate loop: nothing to plot" in " ".join(result.output.split())
+
+
+def test_recording_needs_sim_time(tmp_path: Path) -> None:
+    result = runner.invoke(
+        app, ["run", SHUTTLE, "--wall", "--record", str(tmp_path / "w.mcap"), "--quiet"]
+    )
+    assert result.exit_code == 2
+    assert "error: --record needs sim time: drop --wall to record a run" in result.output
