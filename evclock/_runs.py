@@ -189,7 +189,7 @@ def run_scenario(
             raise InvalidArgumentError("--record needs sim time: drop --wall to record a run")
         report = _run_on_wall_time(cls, float(limit), seed, gui, progress)
     else:
-        report = _run_on_sim_time(cls, float(limit), rtf, seed, gui, record, progress)
+        report = _run_on_sim_time(cls, float(limit), rtf, seed, params, gui, record, progress)
     report.params = params
     return report
 
@@ -215,6 +215,7 @@ def _run_on_sim_time(
     limit: float,
     rtf: float | None,
     seed: int,
+    params: dict[str, ParamValue],
     gui: bool,
     record: Path | None,
     progress: Progress | None,
@@ -222,20 +223,18 @@ def _run_on_sim_time(
     from .sources import PyBulletTimeSource
 
     output: list[str] = []
+    recorder: Recorder | None = None
     source = PyBulletTimeSource.connect(gui=gui)
     try:
         scenario = _set_up(cls, source.client, seed, output)
+        if record is not None:
+            from ._record import Recorder
+
+            metadata = {"scenario": cls.name, "seed": seed, "params": params, "until_s": limit}
+            recorder = Recorder(record, {**metadata, "class": cls.__qualname__})
     except BaseException:
         source.close()
         raise
-    recorder: Recorder | None = None
-    if record is not None:
-        from ._record import Recorder
-
-        recorder = Recorder(
-            record,
-            {"scenario": cls.name, "seed": seed, "until_s": limit, "class": cls.__qualname__},
-        )
     task_id = progress.add_task(cls.name, total=limit, rtf="-") if progress else None
 
     async def show_progress(loop: SimEventLoop) -> None:

@@ -113,8 +113,16 @@ def _scenario_classes_in(module: Any) -> list[type[Any]]:
     ]
 
 
+def split_file_reference(spec: str) -> tuple[str, str]:
+    """``"dir/x.py:Name"`` -> ``("dir/x.py", "Name")``; ``"dir/x.py"`` -> ``("dir/x.py", "")``."""
+    if ".py:" in spec:
+        path, _, class_name = spec.rpartition(".py:")
+        return path + ".py", class_name
+    return spec, ""
+
+
 def _load_from_file(text: str) -> type[Any]:
-    path_text, _, class_name = text.partition(":") if ".py:" in text else (text, "", "")
+    path_text, class_name = split_file_reference(text)
     module = _module_from_file(Path(path_text))
     if class_name:
         if not hasattr(module, class_name):

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from ._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
-from ._scenarios import ParamValue, is_file_reference, load_scenario
+from ._scenarios import ParamValue, is_file_reference, load_scenario, split_file_reference
 
 Backend = Literal["local", "ray"]
 BACKENDS: tuple[Backend, ...] = ("local", "ray")
@@ -62,13 +62,12 @@ class RunSpec:
 
 
 def _format_param(value: ParamValue) -> str:
-    return (
-        repr(value)
-        if isinstance(value, float)
-        else str(value).lower()
-        if isinstance(value, bool)
-        else str(value)
-    )
+    """How ``--param`` spells ``value``: floats exactly (``repr``), bools as true/false."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return repr(value)
+    return str(value)
 
 
 @dataclasses.dataclass
@@ -437,11 +436,8 @@ def sweep(
 
 def _absolute(spec: RunSpec) -> RunSpec:
     """Scenario files by absolute path, so workers in another directory find them."""
-    text = spec.scenario
-    path_text, sep, rest = text.partition(".py:") if ".py:" in text else (text, "", "")
-    if sep:
-        path_text += ".py"
-    if path_text.endswith(".py") and Path(path_text).is_file():
-        resolved = str(Path(path_text).resolve()) + (":" + rest if sep else "")
-        return dataclasses.replace(spec, scenario=resolved)
-    return spec
+    if not is_file_reference(spec.scenario):
+        return spec
+    path, class_name = split_file_reference(spec.scenario)
+    resolved = str(Path(path).resolve()) + (f":{class_name}" if class_name else "")
+    return dataclasses.replace(spec, scenario=resolved)

@@ -73,6 +73,7 @@ def test_every_tick_is_recorded_at_its_sim_time(recorded: tuple[Path, evclock.Ru
         "target_m": report.summary["target_m"],
     }
     assert trace.metadata["evclock.run"]["seed"] == 1
+    assert trace.metadata["evclock.run"]["params"] == {}
     assert trace.metadata["evclock.outcome"]["verdict"] == "success"
 
 
