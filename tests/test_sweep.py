@@ -6,6 +6,7 @@ Every run is a real process with its own physics client. Wall-clock waits are bo
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -17,12 +18,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 from matplotlib.image import imread
+from rich.console import Console
 from typer.testing import CliRunner
 
 import evclock
 from evclock._cli import app
+from evclock._cli_sweep import SweepProgress
 from evclock._plot import HISTOGRAM_COLOR
-from evclock._sweep import parse_seeds, quantiles
+from evclock._sweep import SweepRow, parse_seeds, quantiles
 
 ROOT = Path(__file__).resolve().parent.parent
 SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
@@ -251,3 +254,20 @@ def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_pat
     bad = runner.invoke(app, ["sweep", fragile, "--run-timeout", "0", "--quiet"])
     assert bad.exit_code == 2
     assert "--run-timeout must be a positive number of wall seconds, got 0.0" in bad.output
+
+
+def test_sweep_progress_counts_done_failed_and_aggregate_rtf() -> None:
+    console = Console(file=io.StringIO(), width=120)
+    display = SweepProgress(console, total=3, quiet=False)
+    spec = evclock.RunSpec("shuttle", 0, {})
+    with display.progress:
+        display.row_done(SweepRow(spec, "success", report={"sim_time_s": 2.0}))
+        display.row_done(SweepRow(spec, "error", error="boom"))
+    (task,) = display.progress.tasks
+    assert (task.completed, task.total) == (2, 3)
+    assert task.fields["failed"] == 1
+    assert float(task.fields["rtf"]) > 0  # 2 sim seconds over the elapsed wall time
+    text = console.file.getvalue()  # type: ignore[attr-defined]
+    assert "2/3" in text
+    assert "failed 1" in text
+    assert "ETA" in text
