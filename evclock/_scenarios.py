@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import importlib
-import importlib.metadata
 import importlib.util
 import math
 import sys
@@ -51,6 +50,8 @@ class RegisteredScenario:
 
 def registered_scenarios() -> list[RegisteredScenario]:
     """Every registered scenario, sorted by name then distribution (a stable order)."""
+    import importlib.metadata  # only when scenarios are looked up: it is slow to import
+
     found = []
     for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
         dist = ep.dist.name if ep.dist is not None else "?"
