@@ -21,22 +21,31 @@ from ._errors import (
     InvalidTypeError,
     LagError,
     LoopClosedError,
+    MissingExtraError,
     NoSimulationError,
     NotRunningError,
     PacingError,
     PhysicsError,
+    ScenarioError,
     SimDriverError,
     SimTimeLimitError,
     StallError,
     TimeLookupError,
+    TraceError,
 )
 from ._jumps import JumpHandle, JumpThreshold, TimeJump
 from ._loop import SimEventLoop
+from ._plot import plot_run, plot_sweep
 from ._rate import LoopStats, Rate, Tick, Timer
+from ._record import record
 from ._runner import loop_factory, resolve_use_sim_time, run
 from ._stamped import StampClock, Stamped, StampKey, stamp_of
 from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
+from ._runs import LoopReport, RunReport, run_scenario
+from ._scenarios import ENTRY_POINT_GROUP, load_scenario, parameters
+from ._sweep import RunSpec, SweepResult, SweepRow, plan, sweep
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
+from ._trace import Divergence, Trace, TraceMessage, first_divergence, read_trace
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
 
 if TYPE_CHECKING:
@@ -45,6 +54,28 @@ if TYPE_CHECKING:
 __version__ = "0.1.0"
 
 __all__ = [
+    "ENTRY_POINT_GROUP",
+    "Divergence",
+    "LoopReport",
+    "MissingExtraError",
+    "RunReport",
+    "RunSpec",
+    "ScenarioError",
+    "SweepResult",
+    "SweepRow",
+    "Trace",
+    "TraceError",
+    "TraceMessage",
+    "first_divergence",
+    "load_scenario",
+    "parameters",
+    "plan",
+    "plot_run",
+    "plot_sweep",
+    "read_trace",
+    "record",
+    "run_scenario",
+    "sweep",
     "ENV_USE_SIM_TIME",
     "SIM",
     "STEADY",
@@ -115,3 +146,10 @@ def __getattr__(name: str) -> Any:
 
         return getattr(_buffer, name)
     raise AttributeError(f"module 'evclock' has no attribute {name!r}")
+# Errors show their public name in tracebacks and reprs (evclock.InvalidArgumentError, not
+# evclock._errors.InvalidArgumentError); they pickle by that name too.
+for _name in __all__:
+    _value = globals()[_name]
+    if isinstance(_value, type) and issubclass(_value, EvClockError):
+        _value.__module__ = __name__
+del _name, _value

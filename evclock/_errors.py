@@ -95,3 +95,13 @@ class TimeLookupError(EvClockError, LookupError):
 
 class ExtrapolationError(TimeLookupError):
     """A buffer lookup lies further outside the kept samples than ``max_extrapolation``."""
+class ScenarioError(EvClockError, RuntimeError):
+    """A scenario cannot be found or loaded: an import failure, a name registered twice."""
+
+
+class MissingExtraError(EvClockError, ImportError):
+    """An optional feature was used without its extra installed; the message names the extra."""
+
+
+class TraceError(EvClockError, ValueError):
+    """A recorded trace (MCAP file) cannot be read, or is not an evclock recording."""

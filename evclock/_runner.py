@@ -44,11 +44,26 @@ def _start_ns(start: float | Time | Duration) -> int:
     return ns
 
 
+RTF_MAX = "max"
+"""``rtf="max"``: as fast as possible, the same as ``rtf=None`` (and the CLI's ``--rtf max``)."""
+
+
+def _rtf(rtf: float | str | None) -> float | None:
+    """``"max"`` -> None (as fast as possible); anything else is validated by the loop."""
+    if isinstance(rtf, str):
+        if rtf.strip().lower() == RTF_MAX:
+            return None
+        raise InvalidArgumentError(
+            f"rtf takes 'max' or None (as fast as possible) or a positive number, got {rtf!r}"
+        )
+    return rtf
+
+
 def loop_factory(
     *,
     source: Callable[[], TimeSource] | None = None,
     start: float | Time = 0,
-    rtf: float | None = None,
+    rtf: float | str | None = None,
     strict: bool = False,
     max_lag: float = DEFAULT_MAX_LAG,
     stall_timeout: float | None = DEFAULT_STALL_TIMEOUT,
@@ -71,6 +86,7 @@ def loop_factory(
         raise InvalidArgumentError(
             "start= applies to virtual time only; a custom source sets its own time"
         )
+    rtf = _rtf(rtf)
     make_source = source or functools.partial(VirtualTimeSource, start_ns)
     # Validate the options once, now, rather than at the first loop creation.
     SimEventLoop(
@@ -124,7 +140,7 @@ def run(
     source: TimeSource | None = None,
     start: float | Time = 0,
     until: float | Time | None = None,
-    rtf: float | None = None,
+    rtf: float | str | None = None,
     strict: bool = False,
     max_lag: float = DEFAULT_MAX_LAG,
     stall_timeout: float | None = DEFAULT_STALL_TIMEOUT,
@@ -168,6 +184,7 @@ def run(
         if source is not None and not isinstance(source, TimeSource):
             raise InvalidTypeError(f"source must be a TimeSource, got {type(source).__name__}")
         start_ns = _start_ns(start)
+        rtf = _rtf(rtf)
         if source is None:
             source = VirtualTimeSource(start_ns)
         elif start_ns:

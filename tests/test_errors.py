@@ -202,8 +202,8 @@ def test_until_in_the_past() -> None:
         ),
         (
             {"rtf": "fast"},
-            evclock.InvalidTypeError,
-            "rtf must be None (as fast as possible) or a positive number, got str",
+            evclock.InvalidArgumentError,
+            "rtf takes 'max' or None (as fast as possible) or a positive number, got 'fast'",
         ),
         (
             {"stall_timeout": -1},

@@ -590,7 +590,7 @@ def test_anyio_backend(pytester: pytest.Pytester) -> None:
     result.assert_outcomes(passed=1, failed=1)
     result.stdout.fnmatch_lines(
         [
-            "E *evclock._errors.DeadlockError: deadlock: *",
+            "E *evclock.DeadlockError: deadlock: *",
             "E *Task-* (the test): test_backend_alone_opts_in() at *",
         ]
     )
@@ -677,7 +677,7 @@ async def test_next_one_is_fine():
             "    async def test_stuck():",
             "*",
             ">       await event.wait()",
-            "E       evclock._errors.DeadlockError: deadlock: every task is waiting and nothing "
+            "E       evclock.DeadlockError: deadlock: every task is waiting and nothing "
             "can wake one (no timer is scheduled, virtual time cannot advance on its own, no I/O "
             "is registered and no other thread is working). Waiting tasks:",
             f"E         Task-* (the test): test_stuck() at *test_stuck.py:{test_line} -> "
@@ -860,7 +860,7 @@ async def test_marker_disables_it():
     result.stdout.fnmatch_lines(
         [
             ">           await asyncio.sleep(1)",
-            "E *evclock._errors.SimTimeLimitError: evclock: sim-time limit exceeded: the test "
+            "E *evclock.SimTimeLimitError: evclock: sim-time limit exceeded: the test "
             "was still running after 300 s of sim time (at sim time 310 s) and was cancelled. "
             "Its tasks were at:",
             f"E *Task-* (the test): test_forever() at *test_forever.py:"
@@ -885,7 +885,7 @@ def test_sim_time_limit_does_not_hide_a_deadlock(pytester: pytest.Pytester) -> N
     )
     result = run(pytester)
     result.assert_outcomes(failed=1)
-    result.stdout.fnmatch_lines(["E *evclock._errors.DeadlockError: deadlock: *"])
+    result.stdout.fnmatch_lines(["E *evclock.DeadlockError: deadlock: *"])
 
 
 # --------------------------------------------------------------------------- wall mode

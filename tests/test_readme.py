@@ -41,3 +41,20 @@ def test_pybullet_snippet_runs_as_written() -> None:
     assert out[10].startswith("0.50 s: z = ")
     assert out[-1].startswith("landed at ")
     assert float(out[10].split("z = ")[1].split()[0]) < 1.0  # it fell
+
+
+def test_scenario_snippet_runs_with_the_command(tmp_path: Path) -> None:
+    scenario = tmp_path / "reach.py"
+    scenario.write_text(snippet("### Writing a scenario"))
+    for args in (["--seed", "2"], [f"{scenario}:Reach", "--param", "gain=5"]):
+        target = [] if args[0].endswith(":Reach") else [str(scenario)]
+        result = subprocess.run(
+            [sys.executable, "-m", "evclock", "run", *target, *args, "--quiet"],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert "reach (seed " in result.stdout
+        assert "SUCCESS" in result.stdout

@@ -1,0 +1,5 @@
+"""``python -m evclock``: the ``evclock`` command."""
+
+from ._cli import main
+
+main()

@@ -1,0 +1,273 @@
+"""Sweeps: plans, local and Ray backends for real, crashes as rows, Ctrl-C keeps what finished.
+
+Every run is a real process with its own physics client. Wall-clock waits are bounded
+(subprocess timeouts, polling deadlines); nothing asserts on durations.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from matplotlib.image import imread
+from rich.console import Console
+from typer.testing import CliRunner
+
+import evclock
+from evclock._cli import app
+from evclock._cli_sweep import SweepProgress
+from evclock._plot import HISTOGRAM_COLOR
+from evclock._sweep import SweepRow, parse_seeds, quantiles
+
+ROOT = Path(__file__).resolve().parent.parent
+SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
+TIMEOUT = 300  # wall seconds: a guard against hangs on a loaded machine, not a timing check
+runner = CliRunner()
+
+FRAGILE = """\
+import os
+import signal
+import time
+from pathlib import Path
+
+from evclock_sims.cartpole import CartPole
+
+
+class Fragile(CartPole):
+    name = "fragile"
+    description = "cart-pole for 0.1 s; seed 1 kills its process, seed 2 raises"
+    default_until = 1.0
+    hold_time = 0.1
+    marker_dir = ""
+
+    def __init__(self, client: int, seed: int = 0) -> None:
+        if seed == 1:
+            os.kill(os.getpid(), signal.SIGKILL)
+        if seed == 2:
+            raise RuntimeError("boom at seed 2")
+        if seed >= 5 and self.marker_dir:
+            Path(self.marker_dir, f"started-{seed}").write_text(str(os.getpid()))
+            time.sleep(600)  # held until the sweep is interrupted
+        super().__init__(client, seed)
+"""
+
+
+@pytest.fixture
+def fragile(tmp_path: Path) -> str:
+    path = tmp_path / "fragile.py"
+    path.write_text(FRAGILE)
+    return str(path)
+
+
+def test_parse_seeds() -> None:
+    assert parse_seeds("0:4") == [0, 1, 2, 3]
+    assert parse_seeds("7") == [7]
+    assert parse_seeds("3,1,2") == [3, 1, 2]
+    for bad in ("4:2", "a:b", "1,1", ""):
+        with pytest.raises(evclock.InvalidArgumentError) as info:
+            parse_seeds(bad)
+        assert "--seeds" in str(info.value)
+
+
+def test_plan_is_every_combination_times_every_seed() -> None:
+    specs = evclock.plan("kuka", [0, 1], {"tolerance": [0.01, 0.02], "dwell": [0.3]})
+    assert [(s.params["tolerance"], s.seed) for s in specs] == [
+        (0.01, 0),
+        (0.01, 1),
+        (0.02, 0),
+        (0.02, 1),
+    ]
+    assert (
+        specs[2].command() == "evclock run kuka --seed 0 --param tolerance=0.02 --param dwell=0.3"
+    )
+
+
+def test_quantiles() -> None:
+    assert quantiles([3.0, 1.0, 2.0]) == {"p0": 1.0, "p5": 1.1, "p50": 2.0, "p95": 2.9, "p100": 3.0}
+    assert quantiles([5.0]) == dict.fromkeys(("p0", "p5", "p50", "p95", "p100"), 5.0)
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--workers", "0"], "error: --workers must be at least 1, got 0"),
+        (["--backend", "dask"], "error: --backend takes local or ray, got 'dask'"),
+        (["--address", "1.2.3.4:6379"], "error: --address is the Ray cluster's"),
+        (["--seeds", "5:5"], "error: --seeds takes START:STOP"),
+        (["--param", "nope=1"], "error: scenario 'shuttle' has no parameter 'nope'"),
+        (["--json", "/no/such/dir/x.json"], "error: --json '/no/such/dir/x.json': the directory"),
+    ],
+)
+def test_bad_sweep_input_exits_2(args: list[str], message: str) -> None:
+    result = runner.invoke(app, ["sweep", SHUTTLE, "--quiet", *args])
+    assert result.exit_code == 2
+    assert message in " ".join(result.output.split())
+
+
+def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    png = tmp_path / "sweep.png"
+    result = runner.invoke(
+        app,
+        ["sweep", SHUTTLE, "--seeds", "0:3", "--param", "gain=3,4", "--workers", "2",
+         "--json", str(out), "--plot", str(png), "--quiet"],
+    )  # fmt: skip
+    assert result.exit_code == 0, result.output
+    text = " ".join(result.output.split())
+    assert "shuttle: 6/6 runs (6 success)" in text
+    assert "success rate 100.0%" in text
+    assert "final_error_m" in text
+    data = json.loads(out.read_text())
+    rows = data["rows"]
+    assert [(r["params"]["gain"], r["seed"]) for r in rows] == [
+        (g, s) for g in (3.0, 4.0) for s in range(3)
+    ]
+    assert data["summary"]["success_rate"] == 1.0
+    assert set(data["summary"]["quantiles"]) >= {"target_m", "final_error_m", "sim_time_s"}
+    # Seed 2 through the real command, in another process: the same figures, bit for bit.
+    single = tmp_path / "single.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "evclock", "run", SHUTTLE, "--seed", "2", "--param", "gain=4",
+         "--json", str(single), "--quiet"],
+        capture_output=True, text=True, timeout=TIMEOUT, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    expected = json.loads(single.read_text())
+    assert rows[5]["report"]["final_state"] == expected["final_state"]
+    assert rows[5]["report"]["summary"] == expected["summary"]
+    assert rows[5]["report"]["sim_time_s"] == expected["sim_time_s"]
+    for row in rows[:2]:
+        report = evclock.run_scenario(SHUTTLE, seed=row["seed"], params={"gain": 3.0})
+        assert row["report"]["final_state"] == report.final_state
+    # The histogram PNG: bars drawn for every numeric field.
+    image = imread(png)
+    rgb = np.array([int(HISTOGRAM_COLOR[i : i + 2], 16) / 255 for i in (1, 3, 5)])
+    bars = (np.abs(image[:, :, :3] - rgb).max(axis=2) < 0.02).sum()
+    assert bars > 5000
+
+
+def _rows_by_seed(path: Path) -> dict[int, dict[str, object]]:
+    return {row["seed"]: row for row in json.loads(path.read_text())["rows"]}
+
+
+def test_a_crash_and_an_exception_are_failed_rows(fragile: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    result = runner.invoke(
+        app, ["sweep", fragile, "--seeds", "0:4", "--workers", "2", "--json", str(out), "--quiet"]
+    )
+    assert result.exit_code == 1, result.output
+    rows = _rows_by_seed(out)
+    assert [rows[s]["status"] for s in range(4)] == ["success", "error", "error", "success"]
+    assert rows[1]["error"] == "worker process died without a result (killed by signal 9)"
+    assert rows[2]["error"] == "RuntimeError: boom at seed 2"
+    text = " ".join(result.output.split())
+    assert "fragile: 4/4 runs (2 error, 2 success)" in text
+    assert "error seed 1: worker process died without a result (killed by signal 9)" in text
+    assert f"reproduce: evclock run {fragile} --seed 2" in text
+
+
+def _gone(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except FileNotFoundError:
+        return True
+    return "State:\tZ" in status
+
+
+def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "3,4,5,6",
+         "--param", f"marker_dir={markers}", "--workers", "1", "--json", str(out), "--quiet"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    try:
+        deadline = time.monotonic() + TIMEOUT
+        marker = markers / "started-5"
+        while not marker.exists() and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        assert marker.exists(), proc.communicate(timeout=10)
+        worker = int(marker.read_text())
+        proc.send_signal(signal.SIGINT)
+        stdout, stderr = proc.communicate(timeout=TIMEOUT)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate(timeout=10)
+    assert proc.returncode == 130, stderr
+    data = json.loads(out.read_text())
+    assert data["summary"]["interrupted"] is True
+    assert data["summary"]["planned"] == 4
+    assert [(r["seed"], r["status"]) for r in data["rows"]] == [(3, "success"), (4, "success")]
+    assert "fragile: 2/4 runs (2 success) interrupted" in " ".join(stdout.split())
+    deadline = time.monotonic() + 30
+    while not _gone(worker) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(worker)
+
+
+def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
+    out = tmp_path / "ray.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "0:3", "--backend", "ray",
+         "--workers", "2", "--json", str(out), "--quiet"],
+        capture_output=True, text=True, timeout=TIMEOUT, check=False,
+        env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"},
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr
+    rows = _rows_by_seed(out)
+    assert [rows[s]["status"] for s in range(3)] == ["success", "error", "error"]
+    assert str(rows[1]["error"]).startswith("ray task failed: ")
+    assert rows[2]["error"] == "RuntimeError: boom at seed 2"
+    report = evclock.run_scenario(fragile, seed=0)
+    assert rows[0]["report"]["final_state"] == report.final_state  # type: ignore[index]
+
+
+def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    markers = tmp_path / "markers"
+    markers.mkdir()
+    result = runner.invoke(
+        app,
+        ["sweep", fragile, "--seeds", "0,5", "--param", f"marker_dir={markers}",
+         "--run-timeout", "3", "--workers", "2", "--json", str(out), "--quiet"],
+    )  # fmt: skip
+    assert result.exit_code == 1, result.output
+    rows = _rows_by_seed(out)
+    assert rows[0]["status"] == "success"
+    assert rows[5]["error"] == "timed out after 3 s of wall time (--run-timeout); stopped"
+    worker = int((markers / "started-5").read_text())
+    deadline = time.monotonic() + 30
+    while not _gone(worker) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert _gone(worker)
+    bad = runner.invoke(app, ["sweep", fragile, "--run-timeout", "0", "--quiet"])
+    assert bad.exit_code == 2
+    assert "--run-timeout must be a positive number of wall seconds, got 0.0" in bad.output
+
+
+def test_sweep_progress_counts_done_failed_and_aggregate_rtf() -> None:
+    console = Console(file=io.StringIO(), width=120)
+    display = SweepProgress(console, total=3, quiet=False)
+    spec = evclock.RunSpec("shuttle", 0, {})
+    with display.progress:
+        display.row_done(SweepRow(spec, "success", report={"sim_time_s": 2.0}))
+        display.row_done(SweepRow(spec, "error", error="boom"))
+    (task,) = display.progress.tasks
+    assert (task.completed, task.total) == (2, 3)
+    assert task.fields["failed"] == 1
+    assert float(task.fields["rtf"]) > 0  # 2 sim seconds over the elapsed wall time
+    text = console.file.getvalue()  # type: ignore[attr-defined]
+    assert "2/3" in text
+    assert "failed 1" in text
+    assert "ETA" in text
