@@ -149,7 +149,7 @@ def __getattr__(name: str) -> Any:
 # Errors show their public name in tracebacks and reprs (evclock.InvalidArgumentError, not
 # evclock._errors.InvalidArgumentError); they pickle by that name too.
 for _name in __all__:
-    _value = globals()[_name]
+    _value = globals().get(_name)
     if isinstance(_value, type) and issubclass(_value, EvClockError):
         _value.__module__ = __name__
 del _name, _value
