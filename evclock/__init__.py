@@ -6,21 +6,27 @@ same controller code runs unchanged on wall time on the real robot.
 """
 
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
-from ._config import ENV_USE_SIM_TIME
+from ._config import ENV_CLOCK, ENV_USE_SIM_TIME, register_clock_scheme
 from ._driver import SimDriver
 from ._errors import (
     ClockJumped,
+    ClockLost,
     ClockMismatchError,
     DeadlockError,
     EvClockError,
     InvalidArgumentError,
     InvalidTypeError,
+    JoinRefused,
     LagError,
     LoopClosedError,
     NoSimulationError,
     NotRunningError,
     PacingError,
+    ParticipantLost,
     PhysicsError,
+    ProtocolError,
+    RemoteCallError,
+    RemoteClockError,
     SimDriverError,
     SimTimeLimitError,
     StallError,
@@ -28,6 +34,8 @@ from ._errors import (
 from ._jumps import JumpHandle, JumpThreshold, TimeJump
 from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
+from ._remote._participant import RemoteClockSource, participant
+from ._remote._server import ClockServer, Message, serve
 from ._runner import loop_factory, resolve_use_sim_time, run
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
@@ -35,6 +43,7 @@ from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
 __version__ = "0.1.0"
 
 __all__ = [
+    "ENV_CLOCK",
     "ENV_USE_SIM_TIME",
     "SIM",
     "STEADY",
@@ -81,4 +90,17 @@ __all__ = [
     "resolve_use_sim_time",
     "run",
     "sim_clock",
+    # sim time across processes
+    "ClockLost",
+    "ClockServer",
+    "JoinRefused",
+    "Message",
+    "ParticipantLost",
+    "ProtocolError",
+    "RemoteCallError",
+    "RemoteClockError",
+    "RemoteClockSource",
+    "participant",
+    "register_clock_scheme",
+    "serve",
 ]
