@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import functools
 import json
 import math
 import time
@@ -313,6 +314,16 @@ def run_command(
         Path | None, typer.Option("--json", help="Also write the report as JSON to this file.")
     ] = None,
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
+    serve: Annotated[
+        str | None,
+        typer.Option(
+            help="Serve this run's sim time at ADDR (unix:///path.sock, tcp://HOST:PORT)."
+        ),
+    ] = None,
+    remote_controllers: Annotated[
+        bool,
+        typer.Option(help="With --serve: physics only; `evclock control` runs the controllers."),
+    ] = False,
 ) -> None:
     """Run a PyBullet scenario with its controllers on evclock time."""
     console = Console()
@@ -328,7 +339,10 @@ def run_command(
             TimeElapsedColumn(),
         )
         with Progress(*columns, console=console, disable=quiet, transient=False) as progress:
-            report = run_scenario(
+            if remote_controllers and serve is None:
+                raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
+            runner = run_scenario if serve is None else _served(serve, remote_controllers)
+            report = runner(
                 sim, until=until, rtf=pace, seed=seed, gui=gui, wall=wall, progress=progress
             )
     except EvClockError as exc:
@@ -338,6 +352,21 @@ def run_command(
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
     raise typer.Exit(0 if report.success else 1)
+
+
+def _served(address: str, remote_controllers: bool) -> Any:
+    from ._remote._commands import serve_scenario
+
+    return functools.partial(serve_scenario, address=address, remote_controllers=remote_controllers)
+
+
+def _register_remote() -> None:
+    from ._remote._commands import control_command
+
+    app.command("control")(control_command)
+
+
+_register_remote()
 
 
 def main() -> None:

@@ -50,7 +50,9 @@ def register_clock_scheme(scheme: str, factory: str | Callable[[str], TimeSource
     a ``"module:function"`` path imported on first use.
     """
     if not isinstance(scheme, str) or not scheme.isidentifier() or scheme != scheme.lower():
-        raise InvalidArgumentError(f"a clock scheme is a lowercase word like 'ros2', got {scheme!r}")
+        raise InvalidArgumentError(
+            f"a clock scheme is a lowercase word like 'ros2', got {scheme!r}"
+        )
     if not (callable(factory) or (isinstance(factory, str) and ":" in factory)):
         raise InvalidTypeError(
             "factory must be a callable url -> TimeSource or a 'module:function' string, "

@@ -118,13 +118,18 @@ class RemoteClockSource(TimeSource):
             raise
         if kind == proto.REFUSE:
             sock.close()
-            raise JoinRefused(
-                f"the clock server at {addr} refused {self.name!r}: {payload.decode(errors='replace')}"
-            )
+            reason = payload.decode(errors="replace")
+            raise JoinRefused(f"the clock server at {addr} refused {self.name!r}: {reason}")
         if kind != proto.WELCOME:
             sock.close()
             raise ProtocolError(f"{addr} answered the HELLO with frame kind {kind}, not WELCOME")
         version, now_ns, raw_info = proto.parse_welcome(payload)
+        if version != proto.VERSION:
+            sock.close()
+            raise ProtocolError(
+                f"{addr} speaks protocol version {version}, this process {proto.VERSION}; "
+                "run the same evclock version on both sides"
+            )
         try:
             info = json.loads(raw_info) if raw_info else {}
         except ValueError:
@@ -145,7 +150,9 @@ class RemoteClockSource(TimeSource):
             except TimeoutError:
                 continue
             except OSError as exc:
-                raise ClockLost(f"the clock server at {addr} dropped the connection: {exc}") from None
+                raise ClockLost(
+                    f"the clock server at {addr} dropped the connection: {exc}"
+                ) from None
             if not data:
                 raise ClockLost(f"the clock server at {addr} closed the connection at join")
             frames = reader.feed(data)
@@ -208,8 +215,8 @@ class RemoteClockSource(TimeSource):
             self._send(proto.done(now, target_ns))
             self._waiting_since = time.monotonic()
         if self._latest > now:
-            self._waiting_since = None if target_ns is None or self._latest >= target_ns else (
-                self._waiting_since
+            self._waiting_since = (
+                None if target_ns is None or self._latest >= target_ns else (self._waiting_since)
             )
             return self._move_to(self._latest)
         if self._inbox:

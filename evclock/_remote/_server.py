@@ -41,13 +41,15 @@ from .._loop import SimEventLoop
 from .._threads import mark_internal
 from .._time import SIM, Time
 from . import _protocol as proto
-from ._address import Address, bound_address, listen, parse_address
+from ._address import bound_address, listen, parse_address
 
 log = logging.getLogger("evclock.remote")
 
 FAULT_POLICIES: Final = ("abort", "drop", "pause")
 #: Wall seconds a participant may work on one step before the fault policy applies.
 DEFAULT_STEP_TIMEOUT: Final = 30.0
+#: Wall seconds the simulation waits for its participants to join, by default.
+DEFAULT_JOIN_TIMEOUT: Final = 60.0
 #: Wall seconds a new connection has to send its HELLO.
 HELLO_TIMEOUT: Final = 5.0
 #: A peer whose unsent backlog grows past this many bytes is not reading: a fault.
@@ -164,6 +166,7 @@ class ClockServer:
         self._address = bound_address(self._listener, parsed)
         self._pending: list[_Peer] = []  # connected, HELLO not yet accepted
         self._peers: list[_Peer] = []  # joined, in join order
+        self._departed: list[_Peer] = []  # left cleanly with data still to deliver
         self._joined = 0
         self._working = 0  # lockstep participants working at the current time
         self._holds = 0  # holds on the loop's sim time that this server owns
@@ -177,6 +180,8 @@ class ClockServer:
         self._step_hook: Any = None
         self._closed = False
         self._check_scheduled = False
+        self._join_deadline: float | None = None
+        self._join_missing: Callable[[], str] = str
         loop.add_reader(self._listener, self._on_accept)
         self._stop_watch = threading.Event()
         self._watchdog = threading.Thread(
@@ -232,22 +237,37 @@ class ClockServer:
             self._route(*entry, regrant)
             self._grant_all(regrant)
 
-    async def wait_for_participants(self, *names: str, count: int | None = None) -> None:
+    async def wait_for_participants(
+        self, *names: str, count: int | None = None, timeout: float = DEFAULT_JOIN_TIMEOUT
+    ) -> None:
         """Wait until the named participants (or ``count`` of them) have joined.
 
-        Sim time is held meanwhile: the simulation does not start without them. Bounded by
-        the loop's ``stall_timeout`` (wall seconds).
+        Sim time is held meanwhile: the simulation does not start without them. After
+        ``timeout`` wall seconds :class:`~evclock.ParticipantLost` names who is missing.
         """
         for name in names:
             if not isinstance(name, str):
                 raise InvalidTypeError(f"participant names are strings, got {name!r}")
+        if not (isinstance(timeout, int | float) and timeout > 0):
+            raise InvalidArgumentError(f"timeout must be positive wall seconds, got {timeout!r}")
 
         def ready() -> bool:
             joined = self.participants
             return all(n in joined for n in names) and len(joined) >= (count or 0)
 
-        with self._loop.hold_time():
-            await self._wait(ready)
+        def missing() -> str:
+            absent = [n for n in names if n not in self.participants]
+            if absent:
+                return ", ".join(repr(n) for n in absent)
+            return f"{count} participants ({len(self.participants)} joined)"
+
+        self._join_deadline = time.monotonic() + timeout
+        self._join_missing = missing
+        try:
+            with self._loop.hold_time():
+                await self._wait(ready)
+        finally:
+            self._join_deadline = None
 
     async def wait_until_left(self) -> None:
         """Wait until every participant has left (or was dropped)."""
@@ -362,7 +382,7 @@ class ClockServer:
         elif kind == proto.DONE:
             self._on_done(peer, *proto.parse_done(payload))
         elif kind == proto.PUBLISH:
-            t_ns, topic, data = proto.parse_publish(payload)
+            _, topic, data = proto.parse_publish(payload)
             if peer.mode == proto.MODE_LOCKSTEP:
                 if peer.working_at is None:
                     raise ProtocolError("PUBLISH from a lockstep participant that is not working")
@@ -379,7 +399,7 @@ class ClockServer:
             peer.subscriptions.add(proto.parse_subscribe(payload))
         elif kind == proto.BYE:
             log.info("clock server: participant %s left at %s", peer.describe(), self._now())
-            self._remove(peer)
+            self._remove(peer, clean=True)
         else:
             raise ProtocolError(f"unexpected frame kind {kind!r} from a participant")
 
@@ -505,13 +525,10 @@ class ClockServer:
         """Deliver the round's data in a fixed order, still at this time."""
         regrant: list[_Peer] = []
         while True:
-            batch = [
-                (peer.name, *entry)
-                for peer in self._peers
-                if peer.outbox
-                for entry in peer.outbox
-            ]
-            for peer in self._peers:
+            senders = sorted([*self._peers, *self._departed], key=lambda peer: peer.index)
+            self._departed = []
+            batch = [(peer.name, *entry) for peer in senders for entry in peer.outbox]
+            for peer in senders:
                 peer.outbox = []
             batch += self._outbox
             self._outbox = []
@@ -678,15 +695,19 @@ class ClockServer:
                 what,
             )
 
-    def _remove(self, peer: _Peer) -> None:
+    def _remove(self, peer: _Peer, *, clean: bool = False) -> None:
+        """Forget ``peer``; what it published before leaving cleanly is still delivered."""
         self._disconnect(peer)
         if peer in self._peers:
             self._peers.remove(peer)
+            if clean and peer.outbox:
+                self._departed.append(peer)
         if peer.mode == proto.MODE_FOLLOW and not any(
             p.mode == proto.MODE_FOLLOW for p in self._peers
         ):
             self._remove_step_hook()
-        peer.outbox = []
+        if not clean:
+            peer.outbox = []
         if peer.working_at is not None:
             peer.working_at = None
             self._working -= 1
@@ -716,6 +737,8 @@ class ClockServer:
         while not self._stop_watch.wait(interval):
             now = time.monotonic()
             late = any(now - p.accepted_at > HELLO_TIMEOUT for p in list(self._pending))
+            join_deadline = self._join_deadline
+            late = late or (join_deadline is not None and now > join_deadline)
             if limit is not None and not late:
                 late = any(
                     p.working_since is not None
@@ -737,21 +760,31 @@ class ClockServer:
         for peer in list(self._pending):
             if now - peer.accepted_at > HELLO_TIMEOUT:
                 self._refuse(peer, f"no HELLO within {HELLO_TIMEOUT:g} s")
+        if self._join_deadline is not None and now > self._join_deadline:
+            self._join_deadline = None
+            error = ParticipantLost(
+                f"{self._join_missing()} did not join {self._address} in time; start them "
+                f"with clock='{self._address}' (or EVCLOCK_CLOCK)",
+                self._join_missing(),
+            )
+            for _, fut in self._waiters:
+                if not fut.done():
+                    fut.set_exception(error)
         limit = self._step_timeout
         if limit is None:
             return
         for peer in list(self._peers):
             since = peer.working_since
-            if since is not None and not peer.lost and not peer.silent_reported:
-                if now - since > limit:
-                    self._fault(
-                        peer,
-                        f"did not finish its step within step_timeout={limit:g} s of wall time "
-                        "(stopped or stuck)",
-                        dead=False,
-                    )
-                    if self._failure is not None:
-                        return
+            expired = since is not None and now - since > limit
+            if expired and not peer.lost and not peer.silent_reported:
+                self._fault(
+                    peer,
+                    f"did not finish its step within step_timeout={limit:g} s of wall time "
+                    "(stopped or stuck)",
+                    dead=False,
+                )
+                if self._failure is not None:
+                    return
 
 
 @contextlib.asynccontextmanager
