@@ -89,6 +89,7 @@ class RemoteClockSource(TimeSource):
         self._call_ids = itertools.count(1).__next__
         self._lost: ClockLost | None = None
         self._reading = False
+        self._writing = False  # a writer callback is registered for the rest of _out
         self._closed = False
 
     # ------------------------------------------------------------ joining
@@ -193,6 +194,7 @@ class RemoteClockSource(TimeSource):
         if self._lockstep:
             if self._working:  # everything at `now` is done: say so, name the next deadline
                 self._working = False
+                # The round's data went into _out before: one send carries data and DONE.
                 self._send(proto.done(now, proto.NO_DEADLINE if target_ns is None else target_ns))
                 self._waiting_since = time.monotonic()
             granted = self._granted
@@ -266,10 +268,12 @@ class RemoteClockSource(TimeSource):
             raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
         self._check_usable()
         frame = proto.publish(self._now, topic, bytes(data))
-        if self._lockstep and not self._working:
-            self._held_out.append(frame)  # between rounds: goes with the next grant's work
-        else:
+        if not self._lockstep:
             self._send(frame)
+        elif self._working:
+            self._out += frame  # sent with this round's DONE (or before a call): no extra wakeup
+        else:
+            self._held_out.append(frame)  # between rounds: goes with the next grant's work
 
     def subscribe(self, topic: str, callback: Callable[[Message], object]) -> None:
         """Call ``callback(message)`` (on this loop, at the message's sim time) for data
@@ -347,8 +351,11 @@ class RemoteClockSource(TimeSource):
 
     def _send(self, frame: bytes) -> None:
         if self._out:
-            self._out += frame
-            return
+            if self._writing:
+                self._out += frame  # the writer callback sends it in order
+                return
+            frame = bytes(self._out + frame)
+            self._out.clear()
         try:
             sent = self._sock.send(frame)
         except (BlockingIOError, InterruptedError):
@@ -361,6 +368,7 @@ class RemoteClockSource(TimeSource):
             if self._reading:
                 loop: Any = self._loop
                 loop.add_writer(self._sock, self._flush)
+                self._writing = True
 
     def _flush(self) -> None:
         try:
@@ -371,7 +379,8 @@ class RemoteClockSource(TimeSource):
             self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
             return
         del self._out[:sent]
-        if not self._out and self._reading:
+        if not self._out and self._writing:
+            self._writing = False
             loop: Any = self._loop
             loop.remove_writer(self._sock)
 
@@ -424,6 +433,7 @@ class RemoteClockSource(TimeSource):
     def _lose(self, reason: str) -> None:
         if self._lost is None:
             self._lost = ClockLost(reason)
+        self._writing = False
         if self._reading:
             self._reading = False
             loop: Any = self._loop
