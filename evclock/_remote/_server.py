@@ -623,8 +623,10 @@ class ClockServer:
             sent = peer.sock.send(frame)
         except (BlockingIOError, InterruptedError):
             sent = 0
-        except OSError as exc:
-            self._loop.call_soon(self._lost, peer, f"lost its connection ({exc})")
+        except OSError:
+            # The peer closed its end: its reader sees the goodbye (or the bare EOF) next
+            # and decides between a clean leave and a fault; nothing more is sent to it.
+            peer.out += b"\0"
             return
         if sent < len(frame):
             peer.out += frame[sent:]
@@ -635,8 +637,8 @@ class ClockServer:
             sent = peer.sock.send(peer.out)
         except (BlockingIOError, InterruptedError):
             return
-        except OSError as exc:
-            self._lost(peer, f"lost its connection ({exc})")
+        except OSError:
+            self._loop.remove_writer(peer.sock)  # closed: the reader reports how it ended
             return
         del peer.out[:sent]
         if not peer.out:
@@ -664,7 +666,10 @@ class ClockServer:
 
     def _fault(self, peer: _Peer, reason: str, *, dead: bool) -> None:
         what = f"participant {peer.describe()} {reason} at {self._now()}"
-        if self._policy == "abort":
+        if peer.mode == proto.MODE_FOLLOW:  # it never holds the simulation: just forget it
+            log.warning("clock server: %s; removed it (followers never hold sim time)", what)
+            self._remove(peer)
+        elif self._policy == "abort":
             self._abort(
                 ParticipantLost(
                     f"{what}; the simulation was aborted (on_fault='abort'; 'drop' continues "
