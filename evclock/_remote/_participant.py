@@ -360,6 +360,9 @@ class RemoteClockSource(TimeSource):
             sent = self._sock.send(frame)
         except (BlockingIOError, InterruptedError):
             sent = 0
+        except ConnectionError:
+            self._lose(self._closed_by_server())
+            return
         except OSError as exc:
             self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
             return
@@ -375,6 +378,9 @@ class RemoteClockSource(TimeSource):
             sent = self._sock.send(self._out)
         except (BlockingIOError, InterruptedError):
             return
+        except ConnectionError:
+            self._lose(self._closed_by_server())
+            return
         except OSError as exc:
             self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
             return
@@ -389,14 +395,14 @@ class RemoteClockSource(TimeSource):
             data = self._sock.recv(262144)
         except (BlockingIOError, InterruptedError):
             return
+        except ConnectionError:
+            self._lose(self._closed_by_server())
+            return
         except OSError as exc:
             self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
             return
         if not data:
-            self._lose(
-                f"the clock server at {self._address} closed the connection "
-                "(the simulation died or was killed)"
-            )
+            self._lose(self._closed_by_server())
             return
         try:
             for kind, payload in self._reader.feed(data):
@@ -429,6 +435,12 @@ class RemoteClockSource(TimeSource):
                 f"sim time went backwards ({self._now} -> {t_ns} ns): the simulation reset or "
                 "restored a snapshot; backward jumps are not propagated across processes"
             )
+
+    def _closed_by_server(self) -> str:
+        return (
+            f"the clock server at {self._address} closed the connection "
+            "(the simulation died or was killed)"
+        )
 
     def _lose(self, reason: str) -> None:
         if self._lost is None:
