@@ -217,9 +217,9 @@ class RemoteClockSource(TimeSource):
             self._send(proto.done(now, target_ns))
             self._waiting_since = time.monotonic()
         if self._latest > now:
-            self._waiting_since = (
-                None if target_ns is None or self._latest >= target_ns else (self._waiting_since)
-            )
+            # Time moved: the server is alive; wait again from now if the deadline is ahead.
+            reached = target_ns is None or self._latest >= target_ns
+            self._waiting_since = None if reached else time.monotonic()
             return self._move_to(self._latest)
         if self._inbox:
             self._schedule_dispatch()
