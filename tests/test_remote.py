@@ -351,6 +351,7 @@ def test_serve_needs_a_sim_loop() -> None:
         ("unix:///tmp/s.sock?mode=fast", "mode must be 'lockstep' or 'follow'"),
         ("unix:///tmp/s.sock?color=red", "unknown option 'color' in clock address"),
         ("unix:///tmp/s.sock?timeout=-1", "timeout must be a positive number of seconds"),
+        ("unix:///tmp/s.sock?timeout=0.1", "timeout must be at least 0.5 s (the server's keep"),
         ("tcp://127.0.0.1", "a tcp clock address is tcp://HOST:PORT"),
     ],
 )
@@ -388,9 +389,9 @@ def test_no_server_is_a_clock_lost_error_after_the_timeout(tmp_path: Path) -> No
         raise AssertionError("must not run")
 
     with pytest.raises(
-        evclock.ClockLost, match=r"no clock server at unix://.* after waiting 0\.2 s"
+        evclock.ClockLost, match=r"no clock server at unix://.* after waiting 0\.5 s"
     ):
-        evclock.run(main(), clock=f"unix://{tmp_path / 'none.sock'}?timeout=0.2")
+        evclock.run(main(), clock=f"unix://{tmp_path / 'none.sock'}?timeout=0.5")
 
 
 def test_a_registered_clock_scheme_provides_the_source(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -454,3 +455,19 @@ def test_address_options_are_parsed() -> None:
         "t",
     )
     assert str(parse_address("tcp://127.0.0.1:7411")) == "tcp://127.0.0.1:7411"
+
+
+def test_a_long_wait_on_a_live_server_is_not_a_lost_clock(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    # 0.5 s of patience, 1 s of wall time until its deadline: the server's keepalives count.
+    proc = spawn(tmp_path, TICKER.replace("0.001", "1.0"), "1", EVCLOCK_CLOCK=f"{url}?timeout=0.5")
+
+    async def main() -> None:
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants(count=1)
+            await server.wait_until_left()
+
+    evclock.run(main(), rtf=1.0)
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert json.loads(out) == [0, 1_000_000_000]

@@ -20,6 +20,8 @@ MODES = ("lockstep", "follow")
 _PARTICIPANT_KEYS = ("mode", "name", "token", "timeout")
 #: Wall seconds a participant waits for the server (to appear, to grant, to reply) by default.
 DEFAULT_PEER_TIMEOUT = 60.0
+#: The shortest ``timeout`` accepted: a few keepalive periods of the server.
+MIN_PEER_TIMEOUT = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,6 +96,11 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
         if "timeout" in options
         else DEFAULT_PEER_TIMEOUT
     )
+    if timeout < MIN_PEER_TIMEOUT:
+        raise InvalidArgumentError(
+            f"timeout must be at least {MIN_PEER_TIMEOUT:g} s (the server's keepalives come "
+            f"every 0.2 s), got {options['timeout']!r}"
+        )
     common = {"mode": mode, "name": name, "token": options.get("token"), "timeout": timeout}
     if parts.scheme == "unix":
         if parts.netloc or not parts.path:

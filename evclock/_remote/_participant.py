@@ -404,6 +404,8 @@ class RemoteClockSource(TimeSource):
         if not data:
             self._lose(self._closed_by_server())
             return
+        if self._waiting_since is not None:
+            self._waiting_since = time.monotonic()  # the server is alive (keepalives included)
         try:
             for kind, payload in self._reader.feed(data):
                 self._handle(kind, payload)
@@ -415,10 +417,10 @@ class RemoteClockSource(TimeSource):
             t_ns = proto.parse_stamp(payload)
             self._check_forward(t_ns)
             self._granted = t_ns
-        elif kind == proto.TIME:
+        elif kind == proto.TIME:  # a follower's time; a keepalive for a lockstep participant
             t_ns = proto.parse_stamp(payload)
             self._check_forward(t_ns)
-            self._latest = t_ns
+            self._latest = max(self._latest, t_ns)
         elif kind == proto.DELIVER:
             self._inbox.append(proto.parse_deliver(payload))
         elif kind == proto.REPLY:

@@ -50,6 +50,8 @@ FAULT_POLICIES: Final = ("abort", "drop", "pause")
 DEFAULT_STEP_TIMEOUT: Final = 30.0
 #: Wall seconds the simulation waits for its participants to join, by default.
 DEFAULT_JOIN_TIMEOUT: Final = 60.0
+#: Wall seconds between keepalives to waiting participants (their ``timeout`` must be longer).
+KEEPALIVE: Final = 0.2
 #: Wall seconds a new connection has to send its HELLO.
 HELLO_TIMEOUT: Final = 5.0
 #: A peer whose unsent backlog grows past this many bytes is not reading: a fault.
@@ -171,6 +173,7 @@ class ClockServer:
         self._working = 0  # lockstep participants working at the current time
         self._holds = 0  # holds on the loop's sim time that this server owns
         self._outbox: list[tuple[str, int, str, bytes]] = []  # from the simulation/followers
+        self._round_has_data = False  # anything queued for the end of the round
         self._subscribers: dict[str, list[Callable[[Message], object]]] = {}
         self._services: dict[str, Callable[[bytes], bytes]] = {}
         self._dropped: list[tuple[str, str]] = []
@@ -232,6 +235,7 @@ class ClockServer:
         entry = ("simulation", self._loop.now_ns, topic, bytes(data))
         if self._working:
             self._outbox.append(entry)
+            self._round_has_data = True
         else:
             regrant: list[_Peer] = []
             self._route(*entry, regrant)
@@ -387,8 +391,10 @@ class ClockServer:
                 if peer.working_at is None:
                     raise ProtocolError("PUBLISH from a lockstep participant that is not working")
                 peer.outbox.append((peer.working_at, topic, data))
+                self._round_has_data = True
             elif self._working:
                 self._outbox.append((peer.name, self._loop.now_ns, topic, data))
+                self._round_has_data = True
             else:
                 regrant: list[_Peer] = []
                 self._route(peer.name, self._loop.now_ns, topic, data, regrant)
@@ -523,6 +529,9 @@ class ClockServer:
 
     def _close_round(self) -> None:
         """Deliver the round's data in a fixed order, still at this time."""
+        if not self._round_has_data:
+            return  # the common case: a round without data costs nothing here
+        self._round_has_data = False
         regrant: list[_Peer] = []
         while True:
             senders = sorted([*self._peers, *self._departed], key=lambda peer: peer.index)
@@ -736,11 +745,19 @@ class ClockServer:
     # ------------------------------------------------------------ watchdog
 
     def _watch(self) -> None:
-        """A daemon thread: wakes the loop when a wall deadline passed (it never blocks it)."""
+        """A daemon thread: wakes the loop when a wall deadline passed or a keepalive is due
+        (it never blocks the loop)."""
         limit = self._step_timeout
-        interval = min(HELLO_TIMEOUT, limit or HELLO_TIMEOUT) / 8
+        interval = min(HELLO_TIMEOUT / 8, (limit or HELLO_TIMEOUT) / 8, KEEPALIVE)
+        next_keepalive = time.monotonic() + KEEPALIVE
         while not self._stop_watch.wait(interval):
             now = time.monotonic()
+            if now >= next_keepalive and self._peers:
+                next_keepalive = now + KEEPALIVE
+                try:
+                    self._loop.call_soon_threadsafe(self._keepalive)
+                except RuntimeError:  # the loop closed under us
+                    return
             late = any(now - p.accepted_at > HELLO_TIMEOUT for p in list(self._pending))
             join_deadline = self._join_deadline
             late = late or (join_deadline is not None and now > join_deadline)
@@ -758,6 +775,14 @@ class ClockServer:
                     self._loop.call_soon_threadsafe(self._check_timeouts)
                 except RuntimeError:  # the loop closed under us
                     return
+
+    def _keepalive(self) -> None:
+        """Tell every waiting participant the time: a stopped server is one that goes quiet."""
+        now = self._loop.now_ns
+        frame = proto.time_frame(now)
+        for peer in self._peers:
+            if peer.working_at is None and not peer.lost and not peer.out:
+                self._send(peer, frame)
 
     def _check_timeouts(self) -> None:
         self._check_scheduled = False
