@@ -8,6 +8,7 @@ the in-process ``evclock run`` of the same seed, bit for bit, flat out and paced
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -96,3 +97,38 @@ def test_remote_controllers_needs_serve() -> None:
     code, output = wait(evclock_cli("run", "kuka", "--remote-controllers", "--quiet"))
     assert code == 2
     assert "error: --remote-controllers needs --serve ADDR" in output
+
+
+def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    follower = subprocess.Popen(
+        [sys.executable, "-c", FOLLOWER],
+        cwd=ROOT,
+        env={**os.environ, "EVCLOCK_CLOCK": f"{address}?mode=follow&name=observer"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # started first: it waits for the server to appear
+    code, output = wait(evclock_cli("run", "kuka", "--until", "3", "--rtf", "1", "--quiet",
+                                    "--serve", address))  # fmt: skip
+    seen_code, seen = wait(follower)
+    assert code == 1, output  # the mission needs more than 3 s: a cut-short run "fails"
+    assert seen_code == 0, seen
+    times = json.loads(seen.splitlines()[-1])
+    step = 1_000_000_000 / 240
+    assert len(times) == 5
+    assert all(abs(t / step - round(t / step)) < 1e-6 for t in times)  # physics step times
+    assert times == sorted(times)
+
+
+FOLLOWER = """
+import json, evclock
+async def main():
+    clock = evclock.clock()
+    seen = []
+    for _ in range(5):
+        await clock.sleep(0.1)
+        seen.append(clock.now().nanoseconds)
+    print(json.dumps(seen))
+evclock.run(main())
+"""
