@@ -471,3 +471,12 @@ def test_a_long_wait_on_a_live_server_is_not_a_lost_clock(tmp_path: Path) -> Non
     code, out, err = finish(proc)
     assert code == 0, err
     assert json.loads(out) == [0, 1_000_000_000]
+
+
+def test_whole_frames_one_or_several_per_read() -> None:
+    reader = proto.Reader()
+    assert reader.feed(proto.grant(7)) == [(proto.GRANT, (7).to_bytes(8, "little"))]
+    two = reader.feed(proto.done(7, 9) + proto.bye())
+    assert [kind for kind, _ in two] == [proto.DONE, proto.BYE]
+    with pytest.raises(evclock.ProtocolError, match="bad frame length 0"):
+        reader.feed(b"\x00\x00\x00\x00D")

@@ -150,6 +150,10 @@ class Reader:
     def feed(self, data: bytes) -> list[tuple[int, bytes]]:
         """Append received bytes; return every frame now complete, in order."""
         buf = self._buf
+        if not buf and len(data) >= 5:  # the hot path: exactly one whole frame (a GRANT, a DONE)
+            length, kind = _HEADER.unpack_from(data)
+            if len(data) == 4 + length and 0 < length <= MAX_FRAME:
+                return [(kind, data[5:])]
         buf += data
         frames = []
         pos = 0
