@@ -480,3 +480,35 @@ def test_whole_frames_one_or_several_per_read() -> None:
     assert [kind for kind, _ in two] == [proto.DONE, proto.BYE]
     with pytest.raises(evclock.ProtocolError, match="bad frame length 0"):
         reader.feed(b"\x00\x00\x00\x00D")
+
+
+def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    waiter = """
+    import asyncio, json, evclock
+    async def main():
+        clock = evclock.clock()
+        got = asyncio.Queue()
+        evclock.participant().subscribe("cmd", got.put_nowait)
+        evclock.participant().publish("subscribed", b"")
+        message = await got.get()  # no deadline: only data wakes this participant
+        print(json.dumps([message.sender, message.time.nanoseconds, clock.now().nanoseconds]))
+    evclock.run(main())
+    """
+    proc = spawn(tmp_path, waiter, EVCLOCK_CLOCK=f"{url}?name=waiter")
+
+    async def main() -> None:
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            subscribed = asyncio.Event()
+            server.subscribe("subscribed", lambda _m: subscribed.set())
+            await server.wait_for_participants("waiter")
+            await subscribed.wait()
+            await clock.sleep(0.3)
+            server.publish("cmd", b"go")
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert json.loads(out) == ["simulation", 300_000_000, 300_000_000]
