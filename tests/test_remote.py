@@ -512,3 +512,12 @@ def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Pa
     code, out, err = finish(proc)
     assert code == 0, err
     assert json.loads(out) == ["simulation", 300_000_000, 300_000_000]
+
+
+def test_a_busy_tcp_port_is_a_clear_error() -> None:
+    async def main() -> None:
+        async with evclock.serve("tcp://127.0.0.1:0") as first, evclock.serve(first.address):
+            pass
+
+    with pytest.raises(evclock.InvalidArgumentError, match=r"cannot serve on tcp://127\.0\.0\.1:"):
+        evclock.run(main())

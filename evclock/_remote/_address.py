@@ -140,9 +140,9 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
         old_umask = os.umask(0o177)  # the socket file is born 0600: no window for others
         try:
             sock.bind(address.path)
-        except OSError:
+        except OSError as exc:
             sock.close()
-            raise
+            raise InvalidArgumentError(f"cannot serve on {address}: {exc}") from None
         finally:
             os.umask(old_umask)
     else:
@@ -156,9 +156,9 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             sock.bind((address.host, address.port))
-        except OSError:
+        except OSError as exc:
             sock.close()
-            raise
+            raise InvalidArgumentError(f"cannot serve on {address}: {exc}") from None
     sock.listen(64)
     sock.setblocking(False)
     return sock
