@@ -41,6 +41,7 @@ def wait(proc: subprocess.Popen[str]) -> tuple[int, str]:
     [
         ("kuka", None, "max"),  # the whole mission
         ("cartpole", "5", "max"),
+        ("husky", "2", "max"),  # ray casts and contact queries across processes too
         ("kuka", "1.5", "3"),  # paced
         ("cartpole", "1.5", "3"),
     ],

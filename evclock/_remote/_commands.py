@@ -26,7 +26,7 @@ from .._loop import SimEventLoop
 from .._runner import run as evclock_run
 from ._participant import participant
 from ._physics import PhysicsService, RemotePhysics
-from ._server import DEFAULT_STEP_TIMEOUT, FAULT_POLICIES, Message, serve
+from ._server import DEFAULT_STEP_TIMEOUT, Message, serve
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -227,12 +227,3 @@ def control_command(
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
     raise typer.Exit(0 if report.success else 1)
-
-
-def check_fault_policy(value: str) -> str:
-    """``--on-fault`` values."""
-    if value not in FAULT_POLICIES:
-        raise InvalidArgumentError(
-            f"--on-fault takes one of {', '.join(FAULT_POLICIES)}, got {value!r}"
-        )
-    return value
