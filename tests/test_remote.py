@@ -521,3 +521,32 @@ def test_a_busy_tcp_port_is_a_clear_error() -> None:
 
     with pytest.raises(evclock.InvalidArgumentError, match=r"cannot serve on tcp://127\.0\.0\.1:"):
         evclock.run(main())
+
+
+def test_loop_factory_joins_a_clock_server(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    server = spawn(
+        tmp_path,
+        """
+        import sys, evclock
+        async def main():
+            async with evclock.serve(sys.argv[1]) as server:
+                await server.wait_for_participants("runner")
+                await server.wait_until_left()
+        evclock.run(main())
+        """,
+        url,
+    )
+
+    async def main() -> int:
+        await asyncio.sleep(0.25)  # plain asyncio on the joined loop follows the server
+        return evclock.clock().now().nanoseconds
+
+    factory = evclock.loop_factory(clock=f"{url}?name=runner")
+    with asyncio.Runner(loop_factory=factory) as runner:
+        assert runner.run(main()) == 250_000_000
+    assert finish(server)[0] == 0
+    with pytest.raises(evclock.InvalidArgumentError, match="takes a source or a clock URL"):
+        evclock.loop_factory(clock=url, source=evclock.VirtualTimeSource)
+    with pytest.raises(evclock.InvalidArgumentError, match="pacing"):
+        evclock.loop_factory(clock=url, rtf=2.0)
