@@ -10,23 +10,30 @@ from typing import TYPE_CHECKING, Any
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
 from ._config import ENV_USE_SIM_TIME
 from ._diagnostics import StampDiagnostics, StampWarning, StreamAgeStats, diagnostics_report
+from ._config import ENV_CLOCK, ENV_USE_SIM_TIME, register_clock_scheme
 from ._driver import SimDriver
 from ._errors import (
     ClockJumped,
+    ClockLost,
     ClockMismatchError,
     DeadlockError,
     EvClockError,
     ExtrapolationError,
     InvalidArgumentError,
     InvalidTypeError,
+    JoinRefused,
     LagError,
     LoopClosedError,
     MissingExtraError,
     NoSimulationError,
     NotRunningError,
     PacingError,
+    ParticipantLost,
     PhysicsError,
     ScenarioError,
+    ProtocolError,
+    RemoteCallError,
+    RemoteClockError,
     SimDriverError,
     SimTimeLimitError,
     StallError,
@@ -38,6 +45,8 @@ from ._loop import SimEventLoop
 from ._plot import plot_run, plot_sweep
 from ._rate import LoopStats, Rate, Tick, Timer
 from ._record import record
+from ._remote._participant import RemoteClockSource, participant
+from ._remote._server import ClockServer, Message, serve
 from ._runner import loop_factory, resolve_use_sim_time, run
 from ._stamped import StampClock, Stamped, StampKey, stamp_of
 from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
@@ -76,6 +85,7 @@ __all__ = [
     "record",
     "run_scenario",
     "sweep",
+    "ENV_CLOCK",
     "ENV_USE_SIM_TIME",
     "SIM",
     "STEADY",
@@ -136,6 +146,19 @@ __all__ = [
     "resolve_use_sim_time",
     "run",
     "sim_clock",
+    # sim time across processes
+    "ClockLost",
+    "ClockServer",
+    "JoinRefused",
+    "Message",
+    "ParticipantLost",
+    "ProtocolError",
+    "RemoteCallError",
+    "RemoteClockError",
+    "RemoteClockSource",
+    "participant",
+    "register_clock_scheme",
+    "serve",
 ]
 
 

@@ -12,11 +12,12 @@ Exit codes: 0 success, 1 the mission failed, 2 bad input, 3 the run was cut shor
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -231,6 +232,16 @@ def run_command(
         Path | None, typer.Option(help="Record the run to this MCAP file (needs evclock[record]).")
     ] = None,
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
+    serve: Annotated[
+        str | None,
+        typer.Option(
+            help="Serve this run's sim time at ADDR (unix:///path.sock, tcp://HOST:PORT)."
+        ),
+    ] = None,
+    remote_controllers: Annotated[
+        bool,
+        typer.Option(help="With --serve: physics only; `evclock control` runs the controllers."),
+    ] = False,
 ) -> None:
     """Run a scenario with its controllers on evclock time."""
     console = Console()
@@ -248,22 +259,35 @@ def run_command(
                 f"evclock run takes one value per --param ({', '.join(multi)}); "
                 "use evclock sweep for several"
             )
+        if remote_controllers and serve is None:
+            raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
+        if serve is not None and (values or record is not None):
+            raise InvalidArgumentError(
+                "--serve runs the scenario as registered: drop --param and --record "
+                "(the joined controllers could not know about them)"
+            )
         if record is not None:
             from ._record import mcap_writer_class
 
             mcap_writer_class()
         with progress_bar(console, quiet) as progress:
-            report = run_scenario(
-                scenario,
-                until=until,
-                rtf=pace,
-                seed=seed,
-                params={name: vals[0] for name, vals in values.items()},
-                gui=gui,
-                wall=wall,
-                record=record,
-                progress=progress,
-            )
+            if serve is not None:
+                report = _served(serve, remote_controllers)(
+                    scenario, until=until, rtf=pace, seed=seed, gui=gui, wall=wall,
+                    progress=progress,
+                )
+            else:
+                report = run_scenario(
+                    scenario,
+                    until=until,
+                    rtf=pace,
+                    seed=seed,
+                    params={name: vals[0] for name, vals in values.items()},
+                    gui=gui,
+                    wall=wall,
+                    record=record,
+                    progress=progress,
+                )
     except EvClockError as exc:
         print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
@@ -271,6 +295,21 @@ def run_command(
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
     raise typer.Exit(exit_code(report))
+
+
+def _served(address: str, remote_controllers: bool) -> Any:
+    from ._remote._commands import serve_scenario
+
+    return functools.partial(serve_scenario, address=address, remote_controllers=remote_controllers)
+
+
+def _register_remote() -> None:
+    from ._remote._commands import control_command
+
+    app.command("control")(control_command)
+
+
+_register_remote()
 
 
 def main() -> None:

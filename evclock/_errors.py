@@ -105,3 +105,32 @@ class MissingExtraError(EvClockError, ImportError):
 
 class TraceError(EvClockError, ValueError):
     """A recorded trace (MCAP file) cannot be read, or is not an evclock recording."""
+class RemoteClockError(EvClockError, RuntimeError):
+    """Base class of the errors of sim time across processes (clock servers, participants)."""
+
+
+class ClockLost(RemoteClockError):
+    """A joined process lost its clock server: it closed, died, or stayed silent too long."""
+
+
+class JoinRefused(RemoteClockError):
+    """The clock server refused to let this process join (name taken, version, token)."""
+
+
+class ParticipantLost(RemoteClockError):
+    """A participant the simulation depends on died, stopped answering or never joined.
+
+    ``name`` is the participant's name.
+    """
+
+    def __init__(self, message: str, name: str) -> None:
+        super().__init__(message)
+        self.name = name
+
+
+class ProtocolError(RemoteClockError):
+    """Bytes on a clock connection that are not evclock's clock protocol."""
+
+
+class RemoteCallError(RemoteClockError):
+    """A service call to the simulation process failed there (the message says why)."""

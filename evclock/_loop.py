@@ -66,6 +66,9 @@ _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # ty
 DEFAULT_STALL_TIMEOUT = 60.0
 #: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
 _THREAD_POLL = 0.001
+#: external-source contract: wall seconds an external source waits for I/O before it is
+#: asked again (it checks its own wall deadlines then).
+_EXTERNAL_POLL = 0.05
 
 
 def _check_stall_timeout(value: object) -> float | None:
@@ -469,7 +472,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if self._jump_when_idle and target is not None:
             self._now_ns = max(target, self._now_ns)
         else:
+            before = self._now_ns
             self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
+            # external-source contract: no progress means "waiting for the outside": wait
+            # for its I/O (a socket, a thread calling back), never spin, never deadlock.
+            if self._now_ns == before and self._source.external and not self._ready:
+                self._poll_io(_EXTERNAL_POLL)
 
     def _only_daemons(self) -> bool:
         """Whether every thread but the loop's is a daemon (ignored: background services)."""
@@ -584,7 +592,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def _update_fast_path(self) -> None:
         # Without pacing the loop may advance straight to the next deadline; a
         # discrete-event source is then advanced by the loop itself: a jump.
-        self._advance_directly = self._pacer.idle
+        # external-source contract: an external source is never advanced on the fast path.
+        self._advance_directly = self._pacer.idle and not self._source.external
         self._jump_when_idle = self._source.discrete_event and self._pacer.idle
 
     # ------------------------------------------------------------ pacing API

@@ -8,7 +8,7 @@ from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 from ._clock import WallClock, attach_clock
-from ._config import ENV_USE_SIM_TIME, env_use_sim_time
+from ._config import ENV_CLOCK, ENV_USE_SIM_TIME, clock_source, env_clock, env_use_sim_time
 from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
 from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
 from ._pacing import DEFAULT_MAX_LAG
@@ -57,6 +57,12 @@ def _rtf(rtf: float | str | None) -> float | None:
             f"rtf takes 'max' or None (as fast as possible) or a positive number, got {rtf!r}"
         )
     return rtf
+def _check_remote_options(where: str, url: str, *, rtf: float | None, paused: bool) -> None:
+    if rtf is not None or paused:
+        raise InvalidArgumentError(
+            f"{where}{url!r} joins a simulation served by another process: pacing (rtf, "
+            "paused) belongs to that simulation; drop rtf/paused here"
+        )
 
 
 def loop_factory(
@@ -69,13 +75,28 @@ def loop_factory(
     stall_timeout: float | None = DEFAULT_STALL_TIMEOUT,
     paused: bool = False,
     watch_threads: bool = True,
+    clock: str | None = None,
 ) -> Callable[[], SimEventLoop]:
     """A zero-argument factory of fresh :class:`SimEventLoop` objects, for
     ``asyncio.Runner(loop_factory=...)``, pytest-asyncio or anyio.
 
     ``source`` is a factory too (each loop needs its own time source); by default each loop
-    gets a :class:`VirtualTimeSource` starting at ``start`` seconds.
+    gets a :class:`VirtualTimeSource` starting at ``start`` seconds. ``clock`` (a URL such
+    as ``unix:///tmp/sim.sock``) makes each loop join that clock server instead (see
+    :func:`run`); unlike :func:`run`, a loop factory does not read ``EVCLOCK_CLOCK``.
     """
+    if clock is not None:
+        if source is not None:
+            raise InvalidArgumentError(
+                "loop_factory() takes a source or a clock URL, not both; drop one"
+            )
+        url = clock
+        _check_remote_options("clock=", url, rtf=rtf, paused=paused)
+
+        def remote_source() -> TimeSource:
+            return clock_source(url)
+
+        source = remote_source
     if source is not None and not callable(source):
         raise InvalidTypeError(
             "loop_factory(source=...) takes a callable that returns a new TimeSource "
@@ -147,6 +168,7 @@ def run(
     paused: bool = False,
     wall_clock: ClockType = STEADY,
     debug: bool | None = None,
+    clock: str | None = None,
 ) -> _T:
     """Run ``main`` to completion, like :func:`asyncio.run`, on sim or wall time.
 
@@ -155,14 +177,33 @@ def run(
     (default: virtual time from ``start``); ``until`` (sim seconds or a Time) cancels a
     program still running then and raises :class:`SimTimeLimitError`. On wall time it runs
     on a standard asyncio loop and :func:`evclock.clock` returns the ``wall_clock`` clock.
+
+    ``clock`` (else ``EVCLOCK_CLOCK``) joins the sim time of a simulation in another process:
+    ``unix:///tmp/sim.sock`` or ``tcp://127.0.0.1:PORT``, with ``?mode=lockstep`` (default)
+    or ``follow``, ``name=``, ``token=`` and ``timeout=`` (wall seconds) options; other
+    schemes come from :func:`evclock.register_clock_scheme`. It excludes ``source``,
+    ``start``, pacing and wall time: a conflicting combination is an error, not a guess.
     """
     if not asyncio.iscoroutine(main):
         raise InvalidTypeError(
             f"run() needs a coroutine object such as main(), got {type(main).__name__}"
             + ("; call the function: run(main())" if callable(main) else "")
         )
+    url: str | None = None
     try:
+        if clock is not None and not isinstance(clock, str):
+            raise InvalidTypeError(
+                f"clock must be a URL string such as 'unix:///tmp/sim.sock', got "
+                f"{type(clock).__name__}"
+            )
+        url = clock if clock is not None else env_clock()
+        where = "clock=" if clock is not None else f"{ENV_CLOCK}="
         sim = resolve_use_sim_time(use_sim_time)
+        if url is not None and not sim:
+            raise InvalidArgumentError(
+                f"{where}{url!r} asks for a simulation's sim time but use_sim_time resolved "
+                f"to False (argument or {ENV_USE_SIM_TIME}); choose one"
+            )
         if wall_clock not in (STEADY, SYSTEM):
             raise InvalidArgumentError(f"wall_clock must be STEADY or SYSTEM, got {wall_clock!r}")
         if not sim:
@@ -185,6 +226,14 @@ def run(
             raise InvalidTypeError(f"source must be a TimeSource, got {type(source).__name__}")
         start_ns = _start_ns(start)
         rtf = _rtf(rtf)
+        if url is not None:
+            if source is not None or start_ns:
+                raise InvalidArgumentError(
+                    f"{where}{url!r} joins a simulation in another process, which owns sim "
+                    "time; drop source=/start= (or unset the clock)"
+                )
+            _check_remote_options(where, url, rtf=rtf, paused=paused)
+            source = clock_source(url)
         if source is None:
             source = VirtualTimeSource(start_ns)
         elif start_ns:
@@ -201,6 +250,8 @@ def run(
         )
     except BaseException:
         main.close()
+        if url is not None and source is not None:
+            source.close()  # the connection to the clock server, if it was opened
         raise
     coro: Coroutine[Any, Any, _T] = main
     if until is not None:

@@ -113,6 +113,10 @@ class Scenario(abc.ABC):
         self.rng = np.random.default_rng(seed)
         self.finished_at: float | None = None
         """Simulated seconds at which the mission ended, or None while it has not."""
+        self.pb: Any = p
+        """The PyBullet API the controllers call: the ``pybullet`` module, or a stand-in that
+        forwards the calls to the simulation process when the controllers run in another one
+        (``evclock control``). World building and :meth:`state_vector` always use ``p``."""
         p.setGravity(0.0, 0.0, GRAVITY, physicsClientId=client)
         p.setTimeStep(1.0 / PHYSICS_HZ, physicsClientId=client)
 

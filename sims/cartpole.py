@@ -142,7 +142,7 @@ class CartPole(Scenario):
 
     def _joint_states(self) -> tuple[float, float, float, float]:
         """Cart position, pole angle, cart velocity, pole rate."""
-        cart, pole = p.getJointStates(self.robot, [SLIDER, POLE], physicsClientId=self.client)
+        cart, pole = self.pb.getJointStates(self.robot, [SLIDER, POLE], physicsClientId=self.client)
         return cart[0], pole[0], cart[1], pole[1]
 
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
@@ -176,7 +176,7 @@ class CartPole(Scenario):
         unreachable velocity with force limit ``|force|`` applies exactly that force on every
         step until replaced: a zero-order hold.
         """
-        p.setJointMotorControl2(
+        self.pb.setJointMotorControl2(
             self.robot,
             SLIDER,
             p.VELOCITY_CONTROL,

@@ -110,10 +110,10 @@ class HuskyPatrol(Scenario):
 
     def _pose(self) -> tuple[np.ndarray, float]:
         """Base x/y position and yaw."""
-        position, orientation = p.getBasePositionAndOrientation(
+        position, orientation = self.pb.getBasePositionAndOrientation(
             self.robot, physicsClientId=self.client
         )
-        yaw = p.getEulerFromQuaternion(orientation)[2]
+        yaw = self.pb.getEulerFromQuaternion(orientation)[2]
         return np.array(position[:2]), yaw
 
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
@@ -134,7 +134,7 @@ class HuskyPatrol(Scenario):
                 ]
                 for offset in offsets
             ]
-            hits = p.rayTestBatch([origin] * len(ends), ends, physicsClientId=self.client)
+            hits = self.pb.rayTestBatch([origin] * len(ends), ends, physicsClientId=self.client)
             self.min_range = min(hit[2] for hit in hits) * self.lidar_max_range
 
     async def _mission(self, clock: ClockLike) -> None:
@@ -145,7 +145,7 @@ class HuskyPatrol(Scenario):
             if self.halted or self.min_range < self.stop_range:
                 self.halted = True
                 self._command_wheels(0.0, 0.0)
-                linear, _ = p.getBaseVelocity(self.robot, physicsClientId=self.client)
+                linear, _ = self.pb.getBaseVelocity(self.robot, physicsClientId=self.client)
                 if math.hypot(linear[0], linear[1]) > self.still_speed:
                     still_since = None
                 elif still_since is None:
@@ -158,9 +158,9 @@ class HuskyPatrol(Scenario):
     def _check_obstacle(self) -> None:
         """Record any robot/obstacle contact and the current gap between them."""
         cid = self.client
-        if p.getContactPoints(bodyA=self.robot, bodyB=self.obstacle, physicsClientId=cid):
+        if self.pb.getContactPoints(bodyA=self.robot, bodyB=self.obstacle, physicsClientId=cid):
             self.collided = True
-        closest = p.getClosestPoints(
+        closest = self.pb.getClosestPoints(
             self.robot, self.obstacle, distance=self.lidar_max_range, physicsClientId=cid
         )
         self.clearance = min([self.clearance, *(point[8] for point in closest)])
@@ -187,7 +187,7 @@ class HuskyPatrol(Scenario):
         """Differential-drive command: forward ``speed`` (m/s) and ``turn`` rate (rad/s)."""
         left = (speed - turn * TRACK / 2.0) / WHEEL_RADIUS
         right = (speed + turn * TRACK / 2.0) / WHEEL_RADIUS
-        p.setJointMotorControlArray(
+        self.pb.setJointMotorControlArray(
             self.robot,
             [*LEFT_WHEELS, *RIGHT_WHEELS],
             p.VELOCITY_CONTROL,

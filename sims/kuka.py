@@ -84,7 +84,7 @@ class KukaReach(Scenario):
 
     def flange_position(self) -> np.ndarray:
         """World position of the flange link frame."""
-        link = p.getLinkState(
+        link = self.pb.getLinkState(
             self.robot,
             END_EFFECTOR_LINK,
             computeForwardKinematics=True,
@@ -102,7 +102,7 @@ class KukaReach(Scenario):
         forces = [self.max_joint_torque] * len(self.joints)
         async for _tick in clock.rate(self.control_hz, name="joint_control"):
             command += np.clip(self.goal - command, -max_step, max_step)
-            p.setJointMotorControlArray(
+            self.pb.setJointMotorControlArray(
                 self.robot,
                 self.joints,
                 p.POSITION_CONTROL,
@@ -134,7 +134,7 @@ class KukaReach(Scenario):
 
     def _inverse_kinematics(self, target: np.ndarray) -> list[float]:
         """Joint positions putting the flange at ``target``, pointing down, near the rest pose."""
-        solution: list[float] = p.calculateInverseKinematics(
+        solution: list[float] = self.pb.calculateInverseKinematics(
             self.robot,
             END_EFFECTOR_LINK,
             target.tolist(),

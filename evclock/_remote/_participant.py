@@ -1,0 +1,486 @@
+"""The participant side: a time source whose time comes from a clock server.
+
+``evclock.run(main(), clock="unix:///tmp/sim.sock")`` (or ``EVCLOCK_CLOCK``) runs ``main`` on a
+:class:`~evclock.SimEventLoop` driven by a :class:`RemoteClockSource`. It follows the
+external-source contract: :meth:`RemoteClockSource.advance` never blocks; it returns the
+time the server granted (lockstep) or announced (follow), or the unchanged time to say
+"waiting for the server", and the loop then waits for the socket (registered with
+``add_reader``). Its time is the server's, exactly: after a grant at ``t`` every local
+deadline up to ``t`` fires at ``t``, as on an in-process stepping source.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import json
+import os
+import select
+import socket
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+from .._errors import (
+    ClockLost,
+    InvalidArgumentError,
+    InvalidTypeError,
+    JoinRefused,
+    NoSimulationError,
+    ProtocolError,
+    RemoteCallError,
+)
+from .._time import SIM, Time
+from ..sources import TimeSource
+from ..sources._base import Gate
+from . import _protocol as proto
+from ._address import Address, connect, parse_address
+from ._server import Message
+
+#: Wall seconds between connection attempts while the server is not up yet.
+_RETRY = 0.05
+
+
+def _default_name() -> str:
+    program = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "python"
+    return f"{program}-{os.getpid()}"
+
+
+class RemoteClockSource(TimeSource):
+    """Sim time of a simulation in another process, joined over a clock server's socket.
+
+    :param address: the server's address, ``unix:///path.sock`` or ``tcp://127.0.0.1:PORT``,
+        optionally with ``?mode=lockstep|follow&name=...&token=...&timeout=SECONDS``.
+
+    *lockstep* (default): the simulation does not advance while this process works at
+    ``t`` nor past its next deadline. *follow*: time follows the server every step; the
+    simulation never waits for this process.
+
+    Joining waits up to ``timeout`` wall seconds (default 60) for the server to appear;
+    afterwards each wait for a grant, a time or a reply is bounded by the same ``timeout``
+    and a dead server is reported at once: both raise :class:`~evclock.ClockLost`.
+    """
+
+    external = True
+    free_running = True  # idle waits for the server's time: never a deadlock
+
+    def __init__(self, address: str | Address) -> None:
+        addr = address if isinstance(address, Address) else parse_address(address)
+        self._address = addr
+        self.name = addr.name or _default_name()
+        self.mode = addr.mode
+        self._lockstep = addr.mode == "lockstep"
+        self._timeout = addr.timeout
+        self._sock, now_ns, self.info = self._join(addr)
+        self._sock.setblocking(False)
+        self._now = now_ns
+        self._latest = now_ns  # newest time the server announced (follow)
+        self._granted: int | None = None
+        self._working = self._lockstep  # a lockstep participant starts working at join
+        self._asked = proto.NO_DEADLINE  # deadline last told the server (follow)
+        self._waiting_since: float | None = None
+        self._reader = proto.Reader()
+        self._out = bytearray()
+        self._held_out: list[bytes] = []  # lockstep data produced between rounds
+        self._inbox: list[tuple[int, str, str, bytes]] = []
+        self._subscribers: dict[str, list[Callable[[Message], object]]] = {}
+        self._replies: dict[int, tuple[bool, bytes]] = {}
+        self._call_ids = itertools.count(1).__next__
+        self._lost: ClockLost | None = None
+        self._reading = False
+        self._writing = False  # a writer callback is registered for the rest of _out
+        self._closed = False
+
+    # ------------------------------------------------------------ joining
+
+    def _join(self, addr: Address) -> tuple[socket.socket, int, dict[str, Any]]:
+        deadline = time.monotonic() + self._timeout
+        while True:
+            try:
+                sock = connect(addr, max(deadline - time.monotonic(), 0.01))
+                break
+            except (FileNotFoundError, ConnectionRefusedError) as exc:
+                if time.monotonic() >= deadline:
+                    raise ClockLost(
+                        f"no clock server at {addr} after waiting {self._timeout:g} s of wall "
+                        f"time ({exc.strerror}); start the simulation with --serve {addr} "
+                        "(or raise ?timeout=)"
+                    ) from None
+                time.sleep(_RETRY)
+            except OSError as exc:
+                raise ClockLost(f"cannot connect to the clock server at {addr}: {exc}") from None
+        try:
+            mode = proto.MODE_LOCKSTEP if self._lockstep else proto.MODE_FOLLOW
+            sock.sendall(proto.hello(mode, self.name, addr.token))
+            kind, payload = self._read_one(sock, deadline, addr)
+        except BaseException:
+            sock.close()
+            raise
+        if kind == proto.REFUSE:
+            sock.close()
+            reason = payload.decode(errors="replace")
+            raise JoinRefused(f"the clock server at {addr} refused {self.name!r}: {reason}")
+        if kind != proto.WELCOME:
+            sock.close()
+            raise ProtocolError(f"{addr} answered the HELLO with frame kind {kind}, not WELCOME")
+        version, now_ns, raw_info = proto.parse_welcome(payload)
+        if version != proto.VERSION:
+            sock.close()
+            raise ProtocolError(
+                f"{addr} speaks protocol version {version}, this process {proto.VERSION}; "
+                "run the same evclock version on both sides"
+            )
+        try:
+            info = json.loads(raw_info) if raw_info else {}
+        except ValueError:
+            sock.close()
+            raise ProtocolError(f"{addr} sent unreadable scenario info") from None
+        return sock, now_ns, info
+
+    @staticmethod
+    def _read_one(sock: socket.socket, deadline: float, addr: Address) -> tuple[int, bytes]:
+        reader = proto.Reader()
+        while True:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise ClockLost(f"the clock server at {addr} did not answer the HELLO in time")
+            sock.settimeout(remaining)
+            try:
+                data = sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError as exc:
+                raise ClockLost(
+                    f"the clock server at {addr} dropped the connection: {exc}"
+                ) from None
+            if not data:
+                raise ClockLost(f"the clock server at {addr} closed the connection at join")
+            frames = reader.feed(data)
+            if frames:
+                return frames[0]
+
+    # ------------------------------------------------------------ TimeSource
+
+    def attach(self, loop: Any) -> None:
+        from .._loop import SimEventLoop
+
+        if not isinstance(loop, SimEventLoop):
+            raise InvalidTypeError(
+                "a RemoteClockSource drives a SimEventLoop (evclock.run(main(), clock=...)); "
+                f"got {type(loop).__name__}"
+            )
+        super().attach(loop)
+
+    @property
+    def now_ns(self) -> int:
+        return self._now
+
+    @property
+    def address(self) -> str:
+        """The clock server's address."""
+        return str(self._address)
+
+    def describe(self) -> str:
+        return f"the clock server at {self._address} ({self.mode} participant {self.name!r})"
+
+    def advance(self, target_ns: int | None, gate: Gate) -> int:
+        """Never blocks: the granted/announced time, or the current one ("waiting")."""
+        if self._lost is not None:
+            raise self._lost
+        if not self._reading:
+            self._start_reading()
+        now = self._now
+        if self._lockstep:
+            if self._working:  # everything at `now` is done: say so, name the next deadline
+                self._working = False
+                # The round's data went into _out before: one send carries data and DONE.
+                self._send(proto.done(now, proto.NO_DEADLINE if target_ns is None else target_ns))
+                self._waiting_since = time.monotonic()
+            granted = self._granted
+            if granted is not None:
+                self._granted = None
+                self._working = True
+                self._waiting_since = None
+                if self._held_out:
+                    for frame in self._held_out:
+                        self._send(frame)
+                    self._held_out.clear()
+                return self._move_to(granted)
+            if self._inbox:
+                self._schedule_dispatch()
+            if self._waiting_since is not None:
+                self._check_wait()
+            return now
+        if target_ns is not None and target_ns != self._asked:
+            self._asked = target_ns  # the server tells the time at this deadline at the latest
+            self._send(proto.done(now, target_ns))
+            self._waiting_since = time.monotonic()
+        if self._latest > now:
+            # Time moved: the server is alive; wait again from now if the deadline is ahead.
+            reached = target_ns is None or self._latest >= target_ns
+            self._waiting_since = None if reached else time.monotonic()
+            return self._move_to(self._latest)
+        if self._inbox:
+            self._schedule_dispatch()
+        if target_ns is not None and self._waiting_since is not None:
+            self._check_wait()
+        return now
+
+    def _move_to(self, t_ns: int) -> int:
+        self._now = t_ns
+        if self._inbox:
+            self._schedule_dispatch()
+        return t_ns
+
+    def _check_wait(self) -> None:
+        assert self._waiting_since is not None
+        waited = time.monotonic() - self._waiting_since
+        if waited > self._timeout:
+            self._lose(
+                f"the clock server at {self._address} sent no time for {waited:.1f} s of wall "
+                f"time (limit {self._timeout:g} s: is it stopped or overloaded?)"
+            )
+            assert self._lost is not None
+            raise self._lost
+
+    def close(self) -> None:
+        """Leave the server (a clean goodbye) and close the connection."""
+        if self._closed:
+            return
+        self._closed = True
+        if self._lost is None and self._sock.fileno() >= 0:
+            with contextlib.suppress(OSError):
+                self._sock.setblocking(True)
+                self._sock.settimeout(1.0)
+                self._sock.sendall(bytes(self._out) + proto.bye())
+        self._sock.close()
+
+    # ------------------------------------------------------------ the data channel
+
+    def publish(self, topic: str, data: bytes) -> None:
+        """Send ``data`` on ``topic``, stamped with the current sim time.
+
+        In lockstep the simulation handles it at this time, before physics advances; other
+        participants subscribed to ``topic`` receive it at this time as well.
+        """
+        if not isinstance(data, bytes | bytearray | memoryview):
+            raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
+        self._check_usable()
+        frame = proto.publish(self._now, topic, bytes(data))
+        if not self._lockstep:
+            self._send(frame)
+        elif self._working:
+            self._out += frame  # sent with this round's DONE (or before a call): no extra wakeup
+        else:
+            self._held_out.append(frame)  # between rounds: goes with the next grant's work
+
+    def subscribe(self, topic: str, callback: Callable[[Message], object]) -> None:
+        """Call ``callback(message)`` (on this loop, at the message's sim time) for data
+        published on ``topic`` by the simulation or other participants."""
+        if not callable(callback):
+            raise InvalidTypeError(f"callback must be callable, got {type(callback).__name__}")
+        self._check_usable()
+        frame = proto.subscribe(topic)
+        if topic not in self._subscribers:
+            self._subscribers[topic] = []
+            self._send(frame)
+        self._subscribers[topic].append(callback)
+
+    def call(self, service: str, data: bytes = b"") -> bytes:
+        """Ask the simulation's ``service`` (see ``ClockServer.provide``) and wait for the
+        answer, bounded by the address's ``timeout``. Answered at the current sim time."""
+        if not isinstance(data, bytes | bytearray | memoryview):
+            raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
+        self._check_usable()
+        call_id = self._call_ids()
+        self._out += proto.call(call_id, service, bytes(data))
+        deadline = time.monotonic() + self._timeout
+        sock = self._sock
+        while call_id not in self._replies:
+            if self._lost is not None:
+                raise self._lost
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self._lose(
+                    f"the clock server at {self._address} did not answer a call to "
+                    f"{service!r} within {self._timeout:g} s of wall time"
+                )
+                assert self._lost is not None
+                raise self._lost
+            wants_write = [sock] if self._out else []
+            readable, writable, _ = select.select([sock], wants_write, [], remaining)
+            if writable:
+                self._flush()
+            if readable:
+                self._on_readable()
+        ok, payload = self._replies.pop(call_id)
+        if not ok:
+            raise RemoteCallError(
+                f"call to {service!r} failed in the simulation: {payload.decode(errors='replace')}"
+            )
+        return payload
+
+    def _check_usable(self) -> None:
+        if self._lost is not None:
+            raise self._lost
+        if self._closed:
+            raise ClockLost(f"the connection to {self._address} is closed")
+
+    def _schedule_dispatch(self) -> None:
+        loop: Any = self._loop
+        loop.call_soon(self._dispatch)
+
+    def _dispatch(self) -> None:
+        now = self._now
+        due = [m for m in self._inbox if m[0] <= now]
+        if not due:
+            return
+        self._inbox = [m for m in self._inbox if m[0] > now]
+        for t_ns, sender, topic, data in due:
+            message = Message(sender, topic, Time._from_ns(t_ns, SIM), data)
+            for callback in self._subscribers.get(topic, ()):
+                callback(message)
+
+    # ------------------------------------------------------------ socket I/O
+
+    def _start_reading(self) -> None:
+        loop: Any = self._loop
+        loop.add_reader(self._sock, self._on_readable)
+        self._reading = True
+
+    def _send(self, frame: bytes) -> None:
+        if self._out:
+            if self._writing:
+                self._out += frame  # the writer callback sends it in order
+                return
+            frame = bytes(self._out + frame)
+            self._out.clear()
+        try:
+            sent = self._sock.send(frame)
+        except (BlockingIOError, InterruptedError):
+            sent = 0
+        except ConnectionError:
+            self._lose(self._closed_by_server())
+            return
+        except OSError as exc:
+            self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
+            return
+        if sent < len(frame):
+            self._out += frame[sent:]
+            if self._reading:
+                loop: Any = self._loop
+                loop.add_writer(self._sock, self._flush)
+                self._writing = True
+
+    def _flush(self) -> None:
+        try:
+            sent = self._sock.send(self._out)
+        except (BlockingIOError, InterruptedError):
+            return
+        except ConnectionError:
+            self._lose(self._closed_by_server())
+            return
+        except OSError as exc:
+            self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
+            return
+        del self._out[:sent]
+        if not self._out and self._writing:
+            self._writing = False
+            loop: Any = self._loop
+            loop.remove_writer(self._sock)
+
+    def _on_readable(self) -> None:
+        try:
+            data = self._sock.recv(262144)
+        except (BlockingIOError, InterruptedError):
+            return
+        except ConnectionError:
+            self._lose(self._closed_by_server())
+            return
+        except OSError as exc:
+            self._lose(f"the connection to the clock server at {self._address} failed: {exc}")
+            return
+        if not data:
+            self._lose(self._closed_by_server())
+            return
+        if self._waiting_since is not None:
+            self._waiting_since = time.monotonic()  # the server is alive (keepalives included)
+        try:
+            for kind, payload in self._reader.feed(data):
+                self._handle(kind, payload)
+        except ProtocolError as exc:
+            self._lose(f"the clock server at {self._address} broke the protocol: {exc}")
+
+    def _handle(self, kind: int, payload: bytes) -> None:
+        if kind == proto.GRANT:
+            t_ns = proto.parse_stamp(payload)
+            self._check_forward(t_ns)
+            self._granted = t_ns
+        elif kind == proto.TIME:  # a follower's time; a keepalive for a lockstep participant
+            t_ns = proto.parse_stamp(payload)
+            self._check_forward(t_ns)
+            self._latest = max(self._latest, t_ns)
+        elif kind == proto.DELIVER:
+            self._inbox.append(proto.parse_deliver(payload))
+        elif kind == proto.REPLY:
+            call_id, ok, data = proto.parse_reply(payload)
+            self._replies[call_id] = (ok, data)
+        elif kind == proto.CLOSING:
+            self._lose(payload.decode(errors="replace"))
+        else:
+            raise ProtocolError(f"unexpected frame kind {kind} from the server")
+
+    def _check_forward(self, t_ns: int) -> None:
+        if t_ns < self._now:
+            raise ProtocolError(
+                f"sim time went backwards ({self._now} -> {t_ns} ns): the simulation reset or "
+                "restored a snapshot; backward jumps are not propagated across processes"
+            )
+
+    def _closed_by_server(self) -> str:
+        return (
+            f"the clock server at {self._address} closed the connection "
+            "(the simulation died or was killed)"
+        )
+
+    def _lose(self, reason: str) -> None:
+        if self._lost is None:
+            self._lost = ClockLost(reason)
+        self._writing = False
+        if self._reading:
+            self._reading = False
+            loop: Any = self._loop
+            if loop is not None and not loop.is_closed():
+                loop.remove_reader(self._sock)
+                loop.remove_writer(self._sock)
+        self._sock.close()
+
+
+def participant() -> RemoteClockSource:
+    """The clock-server connection of the running loop (to publish, subscribe and call).
+
+    Raises :class:`~evclock.NoSimulationError` when this program did not join a clock server.
+    """
+    import asyncio
+
+    from .._loop import SimEventLoop
+
+    try:
+        loop = asyncio.get_running_loop()
+    except RuntimeError:
+        loop = None
+    source = loop.source if isinstance(loop, SimEventLoop) else None
+    if not isinstance(source, RemoteClockSource):
+        raise NoSimulationError(
+            "this program did not join a clock server: run it with "
+            "evclock.run(main(), clock='unix:///path.sock') or EVCLOCK_CLOCK=unix:///path.sock"
+        )
+    return source
+
+
+def source_from_url(url: str) -> TimeSource:
+    """The ``unix://`` and ``tcp://`` entries of the clock-scheme registry."""
+    if not isinstance(url, str):
+        raise InvalidArgumentError(f"a clock address is a string, got {url!r}")
+    return RemoteClockSource(url)

@@ -1,0 +1,56 @@
+"""Helpers of the clock-server tests: real participant processes, bounded waits."""
+
+from __future__ import annotations
+
+import os
+import selectors
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+#: Wall seconds any single process wait may take: a guard against hangs, not a timing check.
+WAIT = 60.0
+
+
+def spawn(tmp_path: Path, code: str, *args: str, **env: str) -> subprocess.Popen[str]:
+    """Run ``code`` (a Python script body) in a new interpreter, stdout piped."""
+    script = tmp_path / f"participant_{len(list(tmp_path.glob('participant_*.py')))}.py"
+    script.write_text(textwrap.dedent(code))
+    environ = {
+        k: v for k, v in os.environ.items() if k not in ("EVCLOCK_CLOCK", "EVCLOCK_USE_SIM_TIME")
+    }
+    environ.update(env)
+    return subprocess.Popen(
+        [sys.executable, str(script), *args],
+        cwd=ROOT,
+        env=environ,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
+    """Wait (bounded) for ``proc``; its exit code, stdout and stderr."""
+    try:
+        out, err = proc.communicate(timeout=WAIT)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate(timeout=WAIT)
+        raise AssertionError(f"participant hung:\n{out}\n{err}") from None
+    return proc.returncode, out, err
+
+
+def read_line(proc: subprocess.Popen[str], timeout: float = WAIT) -> str:
+    """The next stdout line of ``proc`` (bounded wait)."""
+    assert proc.stdout is not None
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        deadline = time.monotonic() + timeout
+        while not sel.select(max(deadline - time.monotonic(), 0)):
+            if time.monotonic() >= deadline:
+                raise AssertionError("no output from the participant in time")
+    return proc.stdout.readline()

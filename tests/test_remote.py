@@ -1,0 +1,552 @@
+"""Sim time across processes: serving, joining, lockstep, follow and the data channel.
+
+The simulation runs in the test process (``evclock.run`` + ``evclock.serve``); participants
+are real interpreter processes joining over a real Unix socket (or loopback TCP).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+import json
+import os
+import re
+import stat
+import subprocess
+from pathlib import Path
+
+import pytest
+from _remote_helpers import finish, spawn
+
+import evclock
+from evclock._remote import _protocol as proto
+from evclock._remote._address import parse_address
+
+TICKER = """
+import json, sys, evclock
+
+async def main():
+    clock = evclock.clock()
+    link = evclock.participant()
+    seen = [clock.now().nanoseconds]
+    for i in range(int(sys.argv[1])):
+        await clock.sleep(0.001)
+        seen.append(clock.now().nanoseconds)
+        link.publish("tick", str(i).encode())
+    print(json.dumps(seen))
+
+evclock.run(main())
+"""
+
+
+def address(tmp_path: Path, name: str = "sim.sock") -> str:
+    return f"unix://{tmp_path / name}"
+
+
+def test_lockstep_participant_runs_on_server_time_and_data_is_handled_at_its_time(
+    tmp_path: Path,
+) -> None:
+    url = address(tmp_path)
+    proc = spawn(tmp_path, TICKER, "5", EVCLOCK_CLOCK=f"{url}?name=ticker")
+    handled: list[tuple[int, int, str]] = []
+
+    async def main() -> int:
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+
+            def on_tick(message: evclock.Message) -> None:
+                now = clock.now().nanoseconds
+                handled.append((message.time.nanoseconds, now, message.data.decode()))
+
+            server.subscribe("tick", on_tick)
+            await server.wait_for_participants("ticker")
+            assert server.participants == ("ticker",)
+            await server.wait_until_left()
+            return evclock.clock().now().nanoseconds
+
+    end = evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert json.loads(out) == [0, 1_000_000, 2_000_000, 3_000_000, 4_000_000, 5_000_000]
+    # Each message was handled by the simulation at the sim time it was sent, in order.
+    assert handled == [((i + 1) * 1_000_000, (i + 1) * 1_000_000, str(i)) for i in range(5)]
+    assert end == 5_000_000
+
+
+def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    slow = """
+    import time, evclock
+    async def main():
+        clock = evclock.clock()
+        for _ in range(3):
+            await clock.sleep(0.010)
+            time.sleep(0.05)  # 50 ms of wall-time work at this sim time
+            evclock.participant().publish("done", b"")
+    evclock.run(main())
+    """
+    proc = spawn(tmp_path, slow, EVCLOCK_CLOCK=f"{url}?name=slow")
+    seen: list[tuple[int, int]] = []
+
+    async def main() -> None:
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            server.subscribe(
+                "done", lambda m: seen.append((m.time.nanoseconds, clock.now().nanoseconds))
+            )
+            await server.wait_for_participants("slow")
+
+            async def busy_sim() -> None:  # the simulation's own 1 kHz activity
+                while True:
+                    await clock.sleep(0.001)
+
+            task = asyncio.create_task(busy_sim())
+            await server.wait_until_left()
+            task.cancel()
+
+    evclock.run(main())
+    code, _, err = finish(proc)
+    assert code == 0, err
+    assert seen == [(10_000_000, 10_000_000), (20_000_000, 20_000_000), (30_000_000, 30_000_000)]
+
+
+def test_follower_sees_every_physics_step_and_never_holds_the_simulation(tmp_path: Path) -> None:
+    from evclock import PyBulletTimeSource
+
+    url = address(tmp_path)
+    follower = """
+    import json, evclock
+    async def main():
+        clock = evclock.clock()
+        seen = []
+        for _ in range(3):
+            await clock.sleep(0.010)
+            seen.append(clock.now().nanoseconds)
+        print(json.dumps(seen))
+    evclock.run(main())
+    """
+    proc = spawn(tmp_path, follower, EVCLOCK_CLOCK=f"{url}?name=watcher&mode=follow")
+    source = PyBulletTimeSource.connect()
+
+    async def main() -> None:
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("watcher")
+            await server.wait_until_left()
+
+    evclock.run(main(), source=source)
+    code, out, err = finish(proc)
+    assert code == 0, err
+    times = json.loads(out)
+    step = 1_000_000_000 / 240
+    # On step boundaries (exact ns of whole steps), in order, each at least 10 ms after the last.
+    assert all(abs(t / step - round(t / step)) < 1e-6 for t in times)
+    assert times == sorted(times)
+    assert times[0] >= 10_000_000
+    assert all(b - a >= 10_000_000 for a, b in itertools.pairwise(times))
+
+
+def test_a_participant_started_before_the_server_waits_for_it(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    proc = spawn(tmp_path, TICKER, "2", EVCLOCK_CLOCK=f"{url}?name=early")
+    # The participant is already retrying when the server comes up.
+
+    async def main() -> None:
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("early")
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert json.loads(out) == [0, 1_000_000, 2_000_000]
+
+
+def test_late_join_starts_at_the_current_sim_time(tmp_path: Path) -> None:
+    url = address(tmp_path)
+
+    async def main() -> None:
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            await clock.sleep(0.5)
+            proc = spawn(tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{url}?name=late")
+            await server.wait_for_participants("late")
+            await server.wait_until_left()
+        code, out, err = finish(proc)
+        assert code == 0, err
+        assert json.loads(out) == [500_000_000, 501_000_000]
+
+    evclock.run(main())
+
+
+def test_participants_exchange_data_at_the_same_sim_time(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    listener = """
+    import json, evclock
+    async def main():
+        clock = evclock.clock()
+        link = evclock.participant()
+        got = []
+        import asyncio
+        done = asyncio.Event()
+        def on_ping(message):
+            now = clock.now().nanoseconds
+            got.append([message.sender, message.time.nanoseconds, now, message.data.decode()])
+            if len(got) == 3:
+                done.set()
+        link.subscribe("ping", on_ping)
+        link.publish("ready", b"")
+        await done.wait()
+        print(json.dumps(got))
+    evclock.run(main())
+    """
+    talker = """
+    import evclock
+    async def main():
+        clock = evclock.clock()
+        for i in range(3):
+            await clock.sleep(0.25)
+            evclock.participant().publish("ping", f"#{i}".encode())
+    evclock.run(main())
+    """
+
+    async def main() -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
+        async with evclock.serve(url) as server:
+            ready = asyncio.Event()
+            server.subscribe("ready", lambda _m: ready.set())
+            first = spawn(tmp_path, listener, EVCLOCK_CLOCK=f"{url}?name=listener")
+            await server.wait_for_participants("listener")
+            await ready.wait()
+            second = spawn(tmp_path, talker, EVCLOCK_CLOCK=f"{url}?name=talker")
+            await server.wait_for_participants("talker")
+            await server.wait_until_left()
+        return first, second
+
+    first, second = evclock.run(main())
+    code, out, err = finish(first)
+    assert code == 0, err
+    assert finish(second)[0] == 0
+    assert json.loads(out) == [
+        ["talker", 250_000_000, 250_000_000, "#0"],
+        ["talker", 500_000_000, 500_000_000, "#1"],
+        ["talker", 750_000_000, 750_000_000, "#2"],
+    ]
+
+
+def test_calls_are_answered_and_their_errors_reported(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    caller = """
+    import evclock
+    async def main():
+        link = evclock.participant()
+        print(link.call("echo", b"abc").decode())
+        for service in ("broken", "missing"):
+            try:
+                link.call(service)
+            except evclock.RemoteCallError as exc:
+                print(exc)
+    evclock.run(main())
+    """
+    proc = spawn(tmp_path, caller, EVCLOCK_CLOCK=f"{url}?name=caller")
+
+    def broken(_data: bytes) -> bytes:
+        raise ValueError("no such joint")
+
+    async def main() -> None:
+        async with evclock.serve(url) as server:
+            server.provide("echo", lambda data: data[::-1])
+            server.provide("broken", broken)
+            await server.wait_for_participants("caller")
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert out.splitlines() == [
+        "cba",
+        "call to 'broken' failed in the simulation: ValueError: no such joint",
+        "call to 'missing' failed in the simulation: no service 'missing' (known: broken, echo)",
+    ]
+
+
+def test_unix_socket_is_owner_only_and_removed_afterwards(tmp_path: Path) -> None:
+    path = tmp_path / "private.sock"
+
+    async def main() -> int:
+        async with evclock.serve(f"unix://{path}"):
+            return stat.S_IMODE(os.stat(path).st_mode)
+
+    assert evclock.run(main()) == 0o600
+    assert not path.exists()
+
+
+def test_an_existing_socket_file_is_not_replaced(tmp_path: Path) -> None:
+    path = tmp_path / "taken.sock"
+    path.write_text("")
+
+    async def main() -> None:
+        async with evclock.serve(f"unix://{path}"):
+            pass
+
+    with pytest.raises(evclock.InvalidArgumentError, match="already exists; another clock server"):
+        evclock.run(main())
+
+
+def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
+    async def main() -> list[str]:
+        loop = asyncio.get_running_loop()
+        async with evclock.serve("tcp://127.0.0.1:0", token="s3cret") as server:
+            assert server.address.startswith("tcp://127.0.0.1:")
+            wrong = spawn(tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token=nope")
+            # Served while we wait for the refused process to end (a wait in a worker thread).
+            code, _, refused = await loop.run_in_executor(None, finish, wrong)
+            assert code == 1
+            right = spawn(
+                tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token=s3cret&name=ok"
+            )
+            await server.wait_for_participants("ok")
+            await server.wait_until_left()
+        code, out, err = finish(right)
+        assert code == 0, err
+        return [refused.strip().splitlines()[-1], out]
+
+    wrong, right = evclock.run(main())
+    assert "JoinRefused" in wrong
+    assert "wrong or missing token" in wrong
+    assert json.loads(right) == [0, 1_000_000]
+
+
+def test_tcp_refuses_a_non_loopback_address_without_a_token() -> None:
+    async def main() -> None:
+        async with evclock.serve("tcp://0.0.0.0:0"):
+            pass
+
+    with pytest.raises(evclock.InvalidArgumentError, match="needs a shared token"):
+        evclock.run(main())
+
+    async def with_token() -> None:
+        async with evclock.serve("tcp://0.0.0.0:0", token="t"):
+            pass
+
+    with pytest.raises(evclock.InvalidArgumentError, match="not a loopback address"):
+        evclock.run(with_token())
+
+
+def test_serve_needs_a_sim_loop() -> None:
+    async def main() -> None:
+        async with evclock.serve("unix:///tmp/never.sock"):
+            pass
+
+    with pytest.raises(evclock.InvalidTypeError, match="serves the sim time of a SimEventLoop"):
+        evclock.run(main(), use_sim_time=False)
+
+
+# ------------------------------------------------------------------ launch-time clock choice
+
+
+@pytest.mark.parametrize(
+    ("url", "message"),
+    [
+        ("http://x", "unsupported clock 'http://x': known schemes are unix://, tcp://"),
+        ("unix://relative.sock", "unix:///absolute/path.sock (three slashes)"),
+        ("unix:///tmp/s.sock?mode=fast", "mode must be 'lockstep' or 'follow'"),
+        ("unix:///tmp/s.sock?color=red", "unknown option 'color' in clock address"),
+        ("unix:///tmp/s.sock?timeout=-1", "timeout must be a positive number of seconds"),
+        ("unix:///tmp/s.sock?timeout=0.1", "timeout must be at least 0.5 s (the server's keep"),
+        ("tcp://127.0.0.1", "a tcp clock address is tcp://HOST:PORT"),
+    ],
+)
+def test_bad_clock_addresses_are_refused(url: str, message: str) -> None:
+    async def main() -> None:
+        raise AssertionError("must not run")
+
+    with pytest.raises(
+        evclock.InvalidArgumentError, match=message.replace("(", r"\(").replace(")", r"\)")
+    ):
+        evclock.run(main(), clock=url)
+
+
+def test_clock_conflicts_are_errors_not_guesses(monkeypatch: pytest.MonkeyPatch) -> None:
+    async def main() -> None:
+        raise AssertionError("must not run")
+
+    with pytest.raises(evclock.InvalidArgumentError, match="which owns sim time; drop source="):
+        evclock.run(main(), clock="unix:///tmp/x.sock", source=evclock.VirtualTimeSource())
+    with pytest.raises(evclock.InvalidArgumentError, match=r"pacing .* belongs to that simulation"):
+        evclock.run(main(), clock="unix:///tmp/x.sock", rtf=1.0)
+    with pytest.raises(evclock.InvalidArgumentError, match="use_sim_time resolved to False"):
+        evclock.run(main(), clock="unix:///tmp/x.sock", use_sim_time=False)
+    monkeypatch.setenv("EVCLOCK_CLOCK", "unix:///tmp/x.sock")
+    with pytest.raises(
+        evclock.InvalidArgumentError, match=re.escape("EVCLOCK_CLOCK='unix:///tmp/x.sock'")
+    ):
+        evclock.run(main(), source=evclock.VirtualTimeSource())
+    with pytest.raises(evclock.InvalidTypeError, match="clock must be a URL string"):
+        evclock.run(main(), clock=3)  # type: ignore[arg-type]
+
+
+def test_no_server_is_a_clock_lost_error_after_the_timeout(tmp_path: Path) -> None:
+    async def main() -> None:
+        raise AssertionError("must not run")
+
+    with pytest.raises(
+        evclock.ClockLost, match=r"no clock server at unix://.* after waiting 0\.5 s"
+    ):
+        evclock.run(main(), clock=f"unix://{tmp_path / 'none.sock'}?timeout=0.5")
+
+
+def test_a_registered_clock_scheme_provides_the_source(monkeypatch: pytest.MonkeyPatch) -> None:
+    from evclock import _config
+
+    monkeypatch.setattr(_config, "_CLOCK_SCHEMES", dict(_config._CLOCK_SCHEMES))
+    made: list[str] = []
+
+    def factory(url: str) -> evclock.TimeSource:
+        made.append(url)
+        return evclock.VirtualTimeSource(7_000_000_000)
+
+    evclock.register_clock_scheme("fake", factory)
+
+    async def main() -> float:
+        await asyncio.sleep(1)
+        return evclock.clock().now().seconds
+
+    monkeypatch.setenv("EVCLOCK_CLOCK", "fake://anything")
+    assert evclock.run(main()) == 8.0
+    assert made == ["fake://anything"]
+    with pytest.raises(evclock.InvalidArgumentError, match="a clock scheme is a lowercase word"):
+        evclock.register_clock_scheme("Bad Scheme", factory)
+
+
+def test_participant_outside_a_joined_program_is_an_error() -> None:
+    async def main() -> None:
+        evclock.participant()
+
+    with pytest.raises(evclock.NoSimulationError, match="did not join a clock server"):
+        evclock.run(main())
+
+
+# ------------------------------------------------------------------ framing
+
+
+def test_frames_split_across_reads_are_reassembled() -> None:
+    stream = proto.grant(5) + proto.done(5, 10) + proto.publish(5, "topic", b"\x00" * 1000)
+    reader = proto.Reader()
+    frames = []
+    for i in range(0, len(stream), 7):
+        frames += reader.feed(stream[i : i + 7])
+    assert [kind for kind, _ in frames] == [proto.GRANT, proto.DONE, proto.PUBLISH]
+    assert proto.parse_stamp(frames[0][1]) == 5
+    assert proto.parse_done(frames[1][1]) == (5, 10)
+    assert proto.parse_publish(frames[2][1]) == (5, "topic", b"\x00" * 1000)
+
+
+def test_a_bad_frame_length_is_a_protocol_error() -> None:
+    with pytest.raises(evclock.ProtocolError, match="bad frame length"):
+        proto.Reader().feed(b"GET / HTTP/1.1\r\n\r\n")
+
+
+def test_address_options_are_parsed() -> None:
+    parsed = parse_address("unix:///tmp/a.sock?mode=follow&name=cam&timeout=2.5&token=t")
+    assert (parsed.path, parsed.mode, parsed.name, parsed.timeout, parsed.token) == (
+        "/tmp/a.sock",
+        "follow",
+        "cam",
+        2.5,
+        "t",
+    )
+    assert str(parse_address("tcp://127.0.0.1:7411")) == "tcp://127.0.0.1:7411"
+
+
+def test_a_long_wait_on_a_live_server_is_not_a_lost_clock(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    # 0.5 s of patience, 1 s of wall time until its deadline: the server's keepalives count.
+    proc = spawn(tmp_path, TICKER.replace("0.001", "1.0"), "1", EVCLOCK_CLOCK=f"{url}?timeout=0.5")
+
+    async def main() -> None:
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants(count=1)
+            await server.wait_until_left()
+
+    evclock.run(main(), rtf=1.0)
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert json.loads(out) == [0, 1_000_000_000]
+
+
+def test_whole_frames_one_or_several_per_read() -> None:
+    reader = proto.Reader()
+    assert reader.feed(proto.grant(7)) == [(proto.GRANT, (7).to_bytes(8, "little"))]
+    two = reader.feed(proto.done(7, 9) + proto.bye())
+    assert [kind for kind, _ in two] == [proto.DONE, proto.BYE]
+    with pytest.raises(evclock.ProtocolError, match="bad frame length 0"):
+        reader.feed(b"\x00\x00\x00\x00D")
+
+
+def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    waiter = """
+    import asyncio, json, evclock
+    async def main():
+        clock = evclock.clock()
+        got = asyncio.Queue()
+        evclock.participant().subscribe("cmd", got.put_nowait)
+        evclock.participant().publish("subscribed", b"")
+        message = await got.get()  # no deadline: only data wakes this participant
+        print(json.dumps([message.sender, message.time.nanoseconds, clock.now().nanoseconds]))
+    evclock.run(main())
+    """
+    proc = spawn(tmp_path, waiter, EVCLOCK_CLOCK=f"{url}?name=waiter")
+
+    async def main() -> None:
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            subscribed = asyncio.Event()
+            server.subscribe("subscribed", lambda _m: subscribed.set())
+            await server.wait_for_participants("waiter")
+            await subscribed.wait()
+            await clock.sleep(0.3)
+            server.publish("cmd", b"go")
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert json.loads(out) == ["simulation", 300_000_000, 300_000_000]
+
+
+def test_a_busy_tcp_port_is_a_clear_error() -> None:
+    async def main() -> None:
+        async with evclock.serve("tcp://127.0.0.1:0") as first, evclock.serve(first.address):
+            pass
+
+    with pytest.raises(evclock.InvalidArgumentError, match=r"cannot serve on tcp://127\.0\.0\.1:"):
+        evclock.run(main())
+
+
+def test_loop_factory_joins_a_clock_server(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    server = spawn(
+        tmp_path,
+        """
+        import sys, evclock
+        async def main():
+            async with evclock.serve(sys.argv[1]) as server:
+                await server.wait_for_participants("runner")
+                await server.wait_until_left()
+        evclock.run(main())
+        """,
+        url,
+    )
+
+    async def main() -> int:
+        await asyncio.sleep(0.25)  # plain asyncio on the joined loop follows the server
+        return evclock.clock().now().nanoseconds
+
+    factory = evclock.loop_factory(clock=f"{url}?name=runner")
+    with asyncio.Runner(loop_factory=factory) as runner:
+        assert runner.run(main()) == 250_000_000
+    assert finish(server)[0] == 0
+    with pytest.raises(evclock.InvalidArgumentError, match="takes a source or a clock URL"):
+        evclock.loop_factory(clock=url, source=evclock.VirtualTimeSource)
+    with pytest.raises(evclock.InvalidArgumentError, match="pacing"):
+        evclock.loop_factory(clock=url, rtf=2.0)

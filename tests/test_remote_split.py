@@ -1,0 +1,135 @@
+"""Acceptance: a scenario's controllers in another process, in lockstep, end bit-identical.
+
+``evclock run SIM --serve ADDR --remote-controllers`` runs the physics; ``evclock control SIM
+--clock ADDR`` runs the controllers in a second process. Their final physical state must equal
+the in-process ``evclock run`` of the same seed, bit for bit, flat out and paced.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from _remote_helpers import ROOT, WAIT
+
+from evclock._cli import run_scenario
+
+CLI = [sys.executable, "-c", "from evclock._cli import main; main()"]
+
+
+def evclock_cli(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [*CLI, *args], cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True
+    )
+
+
+def wait(proc: subprocess.Popen[str]) -> tuple[int, str]:
+    try:
+        out, err = proc.communicate(timeout=WAIT * 3)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, err = proc.communicate(timeout=WAIT)
+    return proc.returncode, out + err
+
+
+@pytest.mark.parametrize(
+    ("name", "until", "rtf"),
+    [
+        ("kuka", None, "max"),  # the whole mission
+        ("cartpole", "5", "max"),
+        ("husky", "2", "max"),  # ray casts and contact queries across processes too
+        ("kuka", "1.5", "3"),  # paced
+        ("cartpole", "1.5", "3"),
+    ],
+)
+def test_split_run_ends_bit_identical_to_the_in_process_run(
+    tmp_path: Path, name: str, until: str | None, rtf: str
+) -> None:
+    limit = [] if until is None else ["--until", until]
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    server = evclock_cli(
+        "run", name, *limit, "--rtf", rtf, "--quiet", "--seed", "3",
+        "--serve", address, "--remote-controllers", "--json", str(tmp_path / "sim.json"),
+    )  # fmt: skip
+    controllers = evclock_cli(
+        "control", name, *limit, "--seed", "3", "--clock", address, "--quiet",
+        "--json", str(tmp_path / "controllers.json"),
+    )  # fmt: skip
+    ctrl_code, ctrl_output = wait(controllers)
+    sim_code, sim_output = wait(server)
+    expected_code = 0 if until is None else 1  # a cut-short mission reports failure
+    assert (sim_code, ctrl_code) == (expected_code, expected_code), sim_output + ctrl_output
+
+    in_process = run_scenario(
+        name, until=None if until is None else float(until), seed=3, rtf=None
+    ).to_json()
+    served = json.loads((tmp_path / "sim.json").read_text())
+    joined = json.loads((tmp_path / "controllers.json").read_text())
+    assert served["final_state"] == in_process["final_state"]  # bit for bit
+    assert joined["final_state"] == in_process["final_state"]
+    assert served["sim_time_s"] == joined["sim_time_s"] == in_process["sim_time_s"]
+    assert served["summary"] == joined["summary"] == in_process["summary"]
+    assert [loop["stats"]["ticks"] for loop in served["loops"]] == [
+        loop["stats"]["ticks"] for loop in in_process["loops"]
+    ]
+
+
+def test_controllers_for_another_scenario_or_seed_are_refused(tmp_path: Path) -> None:
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    server = evclock_cli(
+        "run", "kuka", "--quiet", "--serve", address, "--remote-controllers"
+    )  # fmt: skip
+    wrong = evclock_cli("control", "kuka", "--seed", "1", "--clock", address)
+    code, output = wait(wrong)
+    server.kill()
+    wait(server)
+    assert code == 2
+    assert (
+        f"error: the simulation at {address} runs 'kuka' with seed 0, but these controllers "
+        "are 'kuka' with seed 1; use the same on both" in " ".join(output.split())
+    )
+
+
+def test_remote_controllers_needs_serve() -> None:
+    code, output = wait(evclock_cli("run", "kuka", "--remote-controllers", "--quiet"))
+    assert code == 2
+    assert "error: --remote-controllers needs --serve ADDR" in output
+
+
+def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    follower = subprocess.Popen(
+        [sys.executable, "-c", FOLLOWER],
+        cwd=ROOT,
+        env={**os.environ, "EVCLOCK_CLOCK": f"{address}?mode=follow&name=observer"},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )  # started first: it waits for the server to appear
+    code, output = wait(evclock_cli("run", "kuka", "--until", "3", "--rtf", "1", "--quiet",
+                                    "--serve", address))  # fmt: skip
+    seen_code, seen = wait(follower)
+    assert code == 1, output  # the mission needs more than 3 s: a cut-short run "fails"
+    assert seen_code == 0, seen
+    times = json.loads(seen.splitlines()[-1])
+    step = 1_000_000_000 / 240
+    assert len(times) == 5
+    assert all(abs(t / step - round(t / step)) < 1e-6 for t in times)  # physics step times
+    assert times == sorted(times)
+
+
+FOLLOWER = """
+import json, evclock
+async def main():
+    clock = evclock.clock()
+    seen = []
+    for _ in range(5):
+        await clock.sleep(0.1)
+        seen.append(clock.now().nanoseconds)
+    print(json.dumps(seen))
+evclock.run(main())
+"""
