@@ -6,10 +6,11 @@ same controller code runs unchanged on wall time on the real robot.
 """
 
 from ._clock import Clock, SimClock, WallClock, clock, sim_clock
-from ._config import ENV_USE_SIM_TIME
+from ._config import ENV_CLOCK, ENV_USE_SIM_TIME
 from ._driver import SimDriver
 from ._errors import (
     ClockJumped,
+    ClockLost,
     ClockMismatchError,
     DeadlockError,
     EvClockError,
@@ -17,10 +18,12 @@ from ._errors import (
     InvalidTypeError,
     LagError,
     LoopClosedError,
+    MissingExtraError,
     NoSimulationError,
     NotRunningError,
     PacingError,
     PhysicsError,
+    Ros2MessageError,
     SimDriverError,
     SimTimeLimitError,
     StallError,
@@ -30,17 +33,20 @@ from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
 from ._runner import loop_factory, resolve_use_sim_time, run
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
+from .ros2 import Ros2ClockPublisher, Ros2ClockSource
 from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ENV_CLOCK",
     "ENV_USE_SIM_TIME",
     "SIM",
     "STEADY",
     "SYSTEM",
     "Clock",
     "ClockJumped",
+    "ClockLost",
     "ClockMismatchError",
     "ClockType",
     "DeadlockError",
@@ -53,6 +59,7 @@ __all__ = [
     "JumpThreshold",
     "LagError",
     "LoopClosedError",
+    "MissingExtraError",
     "LoopStats",
     "NoSimulationError",
     "NotRunningError",
@@ -60,6 +67,9 @@ __all__ = [
     "PhysicsError",
     "PyBulletTimeSource",
     "Rate",
+    "Ros2ClockPublisher",
+    "Ros2ClockSource",
+    "Ros2MessageError",
     "SimClock",
     "SimDriver",
     "SimDriverError",

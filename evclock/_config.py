@@ -24,3 +24,13 @@ def env_use_sim_time() -> bool | None:
     raise InvalidArgumentError(
         f"{ENV_USE_SIM_TIME} must be one of {'/'.join(_TRUE)} or {'/'.join(_FALSE)}, got {raw!r}"
     )
+
+
+# -- clock URLs (clock= / EVCLOCK_CLOCK): which outside clock a process follows -------------
+ENV_CLOCK = "EVCLOCK_CLOCK"
+
+
+def env_clock() -> str | None:
+    """The ``EVCLOCK_CLOCK`` setting (a clock URL such as ``ros2:///clock``), or None."""
+    raw = os.environ.get(ENV_CLOCK, "").strip()
+    return raw or None

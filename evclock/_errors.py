@@ -87,3 +87,16 @@ class PhysicsError(EvClockError, RuntimeError):
 
 class SimTimeLimitError(EvClockError):
     """A run or a test exceeded its sim-time limit."""
+
+
+class MissingExtraError(EvClockError, ImportError):
+    """An optional feature's dependencies are not installed; the message names the extra
+    (e.g. ``pip install 'evclock[ros2]'``)."""
+
+
+class ClockLost(EvClockError, RuntimeError):
+    """An external clock (a followed ROS 2 ``/clock``) went silent for longer than allowed."""
+
+
+class Ros2MessageError(EvClockError, ValueError):
+    """A ROS 2 ``/clock`` sample evclock cannot read: bad CDR, invalid time, unknown type hash."""

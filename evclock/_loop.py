@@ -66,6 +66,9 @@ _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # ty
 DEFAULT_STALL_TIMEOUT = 60.0
 #: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
 _THREAD_POLL = 0.001
+# external-source contract: longest wait for I/O after an external source made no progress,
+# so that the source's next advance() can check its own wall-time deadline (wall seconds).
+_EXTERNAL_WAIT = 0.05
 
 
 def _check_stall_timeout(value: object) -> float | None:
@@ -469,7 +472,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if self._jump_when_idle and target is not None:
             self._now_ns = max(target, self._now_ns)
         else:
+            before = self._now_ns
             self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
+            # external-source contract: no progress means the source waits for the outside,
+            # which wakes the loop through call_soon_threadsafe: wait for I/O, do not spin.
+            if self._source.external and self._now_ns == before and not self._ready:
+                self._poll_io(_EXTERNAL_WAIT)
 
     def _only_daemons(self) -> bool:
         """Whether every thread but the loop's is a daemon (ignored: background services)."""
@@ -584,7 +592,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def _update_fast_path(self) -> None:
         # Without pacing the loop may advance straight to the next deadline; a
         # discrete-event source is then advanced by the loop itself: a jump.
-        self._advance_directly = self._pacer.idle
+        self._advance_directly = self._pacer.idle and not self._source.external
         self._jump_when_idle = self._source.discrete_event and self._pacer.idle
 
     # ------------------------------------------------------------ pacing API

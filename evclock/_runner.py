@@ -8,7 +8,8 @@ from collections.abc import Callable, Coroutine
 from typing import Any, TypeVar
 
 from ._clock import WallClock, attach_clock
-from ._config import ENV_USE_SIM_TIME, env_use_sim_time
+from ._clock_urls import source_from_clock_url
+from ._config import ENV_CLOCK, ENV_USE_SIM_TIME, env_clock, env_use_sim_time
 from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
 from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
 from ._pacing import DEFAULT_MAX_LAG
@@ -122,6 +123,7 @@ def run(
     *,
     use_sim_time: bool | None = None,
     source: TimeSource | None = None,
+    clock: str | None = None,
     start: float | Time = 0,
     until: float | Time | None = None,
     rtf: float | None = None,
@@ -139,6 +141,9 @@ def run(
     (default: virtual time from ``start``); ``until`` (sim seconds or a Time) cancels a
     program still running then and raises :class:`SimTimeLimitError`. On wall time it runs
     on a standard asyncio loop and :func:`evclock.clock` returns the ``wall_clock`` clock.
+
+    ``clock`` (else ``EVCLOCK_CLOCK``) is a clock URL naming an outside clock to follow, e.g.
+    ``"ros2:///clock"`` (see :mod:`evclock.ros2`); it replaces ``source``.
     """
     if not asyncio.iscoroutine(main):
         raise InvalidTypeError(
@@ -147,6 +152,7 @@ def run(
         )
     try:
         sim = resolve_use_sim_time(use_sim_time)
+        clock_url = _clock_url(clock, source, sim)
         if wall_clock not in (STEADY, SYSTEM):
             raise InvalidArgumentError(f"wall_clock must be STEADY or SYSTEM, got {wall_clock!r}")
         if not sim:
@@ -168,7 +174,13 @@ def run(
         if source is not None and not isinstance(source, TimeSource):
             raise InvalidTypeError(f"source must be a TimeSource, got {type(source).__name__}")
         start_ns = _start_ns(start)
-        if source is None:
+        if clock_url is not None:
+            if start_ns:
+                raise InvalidArgumentError(
+                    "start= applies to virtual time only; a followed clock sets its own time"
+                )
+            source = source_from_clock_url(clock_url)
+        elif source is None:
             source = VirtualTimeSource(start_ns)
         elif start_ns:
             raise InvalidArgumentError(
@@ -198,3 +210,22 @@ def run(
         coro = _limited(main, until_ns)
     with asyncio.Runner(debug=debug, loop_factory=lambda: loop) as runner:
         return runner.run(coro)
+
+
+def _clock_url(clock: str | None, source: TimeSource | None, sim: bool) -> str | None:
+    """The clock URL to follow: ``clock=``, else ``EVCLOCK_CLOCK``; None for none."""
+    url = clock if clock is not None else env_clock()
+    if url is None:
+        return None
+    origin = "clock=" if clock is not None else ENV_CLOCK
+    if not sim:
+        raise InvalidArgumentError(
+            f"{origin} asks to follow {url!r} but use_sim_time resolved to False (argument or "
+            f"{ENV_USE_SIM_TIME}); drop one of them"
+        )
+    if source is not None:
+        raise InvalidArgumentError(
+            f"both a time source and {origin} {url!r} were given; a program follows one clock: "
+            "drop one of them"
+        )
+    return url

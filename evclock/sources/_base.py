@@ -67,6 +67,11 @@ class TimeSource(abc.ABC):
     #: the loop then moves time itself and reads it back through ``loop.now_ns``.
     discrete_event: bool = False
 
+    # external-source contract: time comes from outside the process (a followed ROS 2
+    # /clock). advance() never blocks and may return the time unchanged ("waiting for the
+    # outside"); the host then waits for I/O instead of spinning or reporting a deadlock.
+    external: bool = False
+
     _loop: SourceHost | None = None
 
     def attach(self, loop: SourceHost) -> None:
