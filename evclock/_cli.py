@@ -27,6 +27,7 @@ from ._errors import EvClockError, InvalidArgumentError
 from ._loop import SimEventLoop
 from ._pacing import check_rtf
 from ._runner import run as evclock_run
+from .ros2 import _cli as ros2_cli
 
 if TYPE_CHECKING:
     from evclock_sims import Scenario
@@ -139,15 +140,20 @@ def run_scenario(
     gui: bool = False,
     wall: bool = False,
     progress: Progress | None = None,
+    ros2_clock: ros2_cli.Ros2ClockOptions | None = None,
 ) -> RunReport:
-    """Run scenario ``name`` and report. On sim time unless ``wall`` (see module docstring)."""
+    """Run scenario ``name`` and report. On sim time unless ``wall`` (see module docstring).
+
+    ``ros2_clock``: publish sim time as ROS 2 /clock meanwhile (see :mod:`evclock.ros2`)."""
     cls = _scenario_class(name)
     limit = cls.default_until if until is None else until
     if not (isinstance(limit, int | float) and math.isfinite(limit) and limit > 0):
         raise InvalidArgumentError(f"--until must be a positive number of seconds, got {until!r}")
     if wall:
+        if ros2_clock is not None:
+            raise InvalidArgumentError("--ros2-clock publishes sim time: drop --wall")
         return _run_on_wall_time(cls, limit, seed, gui, progress)
-    return _run_on_sim_time(cls, limit, rtf, seed, gui, progress)
+    return _run_on_sim_time(cls, limit, rtf, seed, gui, progress, ros2_clock)
 
 
 def _run_on_sim_time(
@@ -157,6 +163,7 @@ def _run_on_sim_time(
     seed: int,
     gui: bool,
     progress: Progress | None,
+    ros2_clock: ros2_cli.Ros2ClockOptions | None = None,
 ) -> RunReport:
     from .sources import PyBulletTimeSource
 
@@ -199,7 +206,8 @@ def _run_on_sim_time(
         achieved = sim_s / wall_s if wall_s > 0 else None
         return _report(scenario, "sim", clk, finished, sim_s, wall_s, achieved, scenario.summary())
 
-    return evclock_run(main(), source=source, rtf=rtf)
+    with ros2_cli.publishing(source, ros2_clock):
+        return evclock_run(main(), source=source, rtf=rtf)
 
 
 def _run_on_wall_time(
@@ -313,11 +321,27 @@ def run_command(
         Path | None, typer.Option("--json", help="Also write the report as JSON to this file.")
     ] = None,
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
+    ros2_clock: ros2_cli.Ros2ClockFlag = False,
+    ros_domain_id: ros2_cli.RosDomainId = None,
+    ros2_clock_decimation: ros2_cli.Ros2ClockDecimation = 1,
+    ros2_wire_format: ros2_cli.Ros2WireFormat = ros2_cli.DEFAULT_WIRE_FORMAT,
+    ros2_connect: ros2_cli.Ros2Connect = None,
+    ros2_listen: ros2_cli.Ros2Listen = None,
 ) -> None:
     """Run a PyBullet scenario with its controllers on evclock time."""
     console = Console()
     try:
         pace = parse_rtf(rtf)
+        ros2 = ros2_cli.options_from_cli(
+            ros2_clock,
+            ros_domain_id,
+            ros2_clock_decimation,
+            ros2_wire_format,
+            ros2_connect,
+            ros2_listen,
+        )
+        if ros2 is not None:
+            console.print(ros2.describe())
         if wall and pace is not None:
             raise InvalidArgumentError("--wall runs in real time: drop --rtf (or use --rtf max)")
         columns = (
@@ -329,7 +353,14 @@ def run_command(
         )
         with Progress(*columns, console=console, disable=quiet, transient=False) as progress:
             report = run_scenario(
-                sim, until=until, rtf=pace, seed=seed, gui=gui, wall=wall, progress=progress
+                sim,
+                until=until,
+                rtf=pace,
+                seed=seed,
+                gui=gui,
+                wall=wall,
+                progress=progress,
+                ros2_clock=ros2,
             )
     except EvClockError as exc:
         console.print(f"[red]error:[/red] {exc}")
