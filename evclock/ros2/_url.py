@@ -4,7 +4,7 @@
 ``ros2://[HOST:PORT]/TOPIC[?domain_id=N&connect=EP&listen=EP&startup_timeout=S&
 silence_timeout=S&node_name=NAME]``: ``HOST:PORT`` is a shorthand for ``connect=tcp/HOST:PORT``
 (default: rmw_zenoh's router on ``tcp/127.0.0.1:7447``); ``connect`` and ``listen`` may be
-repeated; a timeout of ``none`` waits forever.
+repeated, or given empty (``listen=``) for none; a timeout of ``none`` waits forever.
 """
 
 from __future__ import annotations
@@ -27,6 +27,15 @@ def _single(params: dict[str, list[str]], name: str, url: str) -> str | None:
     if len(values) != 1:
         raise InvalidArgumentError(f"{name} appears {len(values)} times in {url!r}; give it once")
     return values[0]
+
+
+def _endpoints(
+    params: dict[str, list[str]], name: str, default: tuple[str, ...]
+) -> tuple[str, ...]:
+    """The endpoints given for ``name`` (``name=`` alone: none at all), else ``default``."""
+    if name not in params:
+        return default
+    return tuple(value for value in params[name] if value)
 
 
 def _seconds(text: str | None, name: str, default: float | None, url: str) -> float | None:
@@ -57,15 +66,15 @@ def source_options(url: str) -> dict[str, Any]:
         raise InvalidArgumentError(
             f"unknown parameter(s) {', '.join(unknown)} in {url!r}; known: {', '.join(_KNOWN)}"
         )
-    connect: tuple[str, ...] = tuple(params.get("connect", ()))
+    connect = _endpoints(params, "connect", DEFAULT_CONNECT)
     if parts.netloc:
-        if connect:
+        if "connect" in params:
             raise InvalidArgumentError(f"{url!r} gives both a host and connect=; use one of them")
         connect = (f"tcp/{parts.netloc}",)
     options: dict[str, Any] = {
         "topic": parts.path,
-        "connect": connect or DEFAULT_CONNECT,
-        "listen": tuple(params.get("listen", ())) or DEFAULT_LISTEN,
+        "connect": connect,
+        "listen": _endpoints(params, "listen", DEFAULT_LISTEN),
         "startup_timeout": _seconds(
             _single(params, "startup_timeout", url), "startup_timeout", None, url
         ),
