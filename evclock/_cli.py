@@ -341,7 +341,7 @@ def run_command(
             ros2_listen,
         )
         if ros2 is not None:
-            console.print(ros2.describe())
+            console.print(ros2.describe(), soft_wrap=True)
         if wall and pace is not None:
             raise InvalidArgumentError("--wall runs in real time: drop --rtf (or use --rtf max)")
         columns = (
