@@ -388,3 +388,47 @@ def test_clock_url_in_the_environment_selects_the_follower(
     finally:
         started.set()
         feeder.join(WAIT)
+
+
+def test_publisher_run_publishes_a_virtual_time_loop_at_a_rate(endpoint: str) -> None:
+    with Ros2ClockPublisher(connect=[], listen=[endpoint]) as pub:
+        peer = raw_session(connect=[endpoint], listen=[])
+        try:
+            received = Received(peer, KEY)
+            received.routed_after(lambda: pub.publish(0))
+
+            async def main() -> None:
+                task = asyncio.create_task(pub.run(10))
+                await asyncio.sleep(0.35)
+                task.cancel()
+
+            evclock.run(main())
+            from evclock.ros2 import decode_clock
+
+            stamps = [decode_clock(received.next()[1]) for _ in range(4)]
+            assert stamps == [0, 100_000_000, 200_000_000, 300_000_000]
+            assert received.empty()
+            received.close()
+        finally:
+            peer.close()
+
+
+def test_follower_honours_pacing(endpoint: str, outside: Any) -> None:
+    feed = Feed(outside)
+    source = start_follower(endpoint, feed, 1 * S)
+
+    async def main() -> Time:
+        feed(3 * S)
+        await evclock.clock().sleep(1)  # paced at 1000x: 1 ms of wall time
+        return evclock.clock().now()
+
+    assert evclock.run(main(), source=source, rtf=1000) == Time(2)
+
+
+def test_sim_driver_refuses_an_external_source(endpoint: str, outside: Any) -> None:
+    source = start_follower(endpoint, Feed(outside), 0)
+    try:
+        with pytest.raises(evclock.SimDriverError, match="which SimDriver cannot host yet"):
+            evclock.SimDriver(source)
+    finally:
+        source.close()
