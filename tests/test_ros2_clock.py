@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import sys
 import tempfile
 import threading
 import time
@@ -432,3 +433,25 @@ def test_sim_driver_refuses_an_external_source(endpoint: str, outside: Any) -> N
             evclock.SimDriver(source)
     finally:
         source.close()
+
+
+def test_waiting_for_the_first_clock_is_reported_while_it_lasts(
+    endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    with caplog.at_level("WARNING", logger="evclock.ros2"), pytest.raises(ClockLost):
+        Ros2ClockSource(connect=[endpoint], listen=[], startup_timeout=0.5, silence_timeout=0.2)
+    warnings = [r.getMessage() for r in caplog.records if r.name == "evclock.ros2"]
+    assert warnings[:2] == [
+        "still waiting for the first /clock message after 0.2 s (ROS 2 /clock (domain 0) "
+        f"over Zenoh via {endpoint})",
+        "still waiting for the first /clock message after 0.4 s (ROS 2 /clock (domain 0) "
+        f"over Zenoh via {endpoint})",
+    ]
+
+
+def test_missing_zenoh_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(sys.modules, "zenoh", None)  # as if eclipse-zenoh were not installed
+    with pytest.raises(evclock.MissingExtraError, match=r"module 'zenoh' is missing.*ros2\]'"):
+        Ros2ClockSource()
+    with pytest.raises(evclock.MissingExtraError, match=r"pip install 'evclock\[ros2\]'"):
+        Ros2ClockPublisher()

@@ -286,7 +286,7 @@ class Ros2ClockSource(TimeSource):
                     f"{self._domain_id}, reachable through those endpoints?"
                 )
             logger.warning(
-                "still waiting for the first %s message after %.0f s (%s)",
+                "still waiting for the first %s message after %.1f s (%s)",
                 self._topic,
                 waited,
                 self.describe(),
