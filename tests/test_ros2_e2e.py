@@ -60,6 +60,14 @@ def test_follower_timers_fire_at_the_publishers_times(folder: str) -> None:
         text=True,
     )
     try:
+        # The follower listens once its session is open (the socket file appears): start the
+        # publisher then, so that it connects at once rather than on a retry.
+        socket_file = Path(folder) / "follower.sock"
+        deadline = time.monotonic() + TIMEOUT
+        while not socket_file.exists():
+            assert follower.poll() is None, follower.communicate(timeout=TIMEOUT)
+            assert time.monotonic() < deadline, "the follower never listened"
+            time.sleep(0.01)
         publisher = subprocess.run(
             [
                 sys.executable,
