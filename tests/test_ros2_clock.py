@@ -455,3 +455,22 @@ def test_missing_zenoh_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
         Ros2ClockSource()
     with pytest.raises(evclock.MissingExtraError, match=r"pip install 'evclock\[ros2\]'"):
         Ros2ClockPublisher()
+
+
+def test_after_a_backward_jump_shifted_deadlines_still_fire_exactly(
+    endpoint: str, outside: Any
+) -> None:
+    feed = Feed(outside)
+    source = start_follower(endpoint, feed, 10 * S)
+
+    async def main() -> list[Time]:
+        clk = evclock.clock()
+        fired: list[Time] = []
+        asyncio.get_running_loop().call_later(0.5, lambda: fired.append(clk.now()))
+        feed(3 * S)  # a reset, then the simulator runs on at once
+        feed(4 * S)
+        await asyncio.sleep(0.6)  # asyncio timers keep their remaining delay across a jump
+        assert clk.now() == Time(0, 3_600_000_000)
+        return fired
+
+    assert evclock.run(main(), source=source) == [Time(0, 3_500_000_000)]

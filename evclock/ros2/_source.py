@@ -184,10 +184,12 @@ class Ros2ClockSource(TimeSource):
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
         self._loop_wakeable = True  # from now on the loop is running: wake it on arrival
-        self._drain()
+        jumped = self._drain()
         if self._error is not None:
             raise self._error
         now = self._now
+        if jumped:
+            return now  # the jump moved the deadlines: the host asks again with a new target
         latest = self._latest
         if latest is not None and latest > now:
             new = latest if target_ns is None else min(target_ns, latest)
@@ -246,9 +248,10 @@ class Ros2ClockSource(TimeSource):
             self._wake_pending = False
         self._drain()
 
-    def _drain(self) -> None:
-        """On the loop's thread: read the inbox in arrival order."""
+    def _drain(self) -> bool:
+        """On the loop's thread: read the inbox in arrival order; True if time jumped."""
         inbox = self._inbox
+        jumped = False
         while inbox:
             key_expr, payload = inbox.popleft()
             try:
@@ -256,7 +259,7 @@ class Ros2ClockSource(TimeSource):
                 time_ns = decode_clock(payload)
             except Ros2MessageError as exc:
                 self._error = exc
-                return
+                return jumped
             self._received += 1
             loop = self._loop
             if loop is None:
@@ -264,7 +267,9 @@ class Ros2ClockSource(TimeSource):
             elif time_ns < self._now:
                 # The simulator went back (a reset): a jump, with evclock's jump policy.
                 loop._jump_time(self._now, time_ns, self._assign)
+                jumped = True
             self._latest = time_ns
+        return jumped
 
     def _assign(self, new_ns: int) -> None:
         self._now = new_ns
