@@ -42,7 +42,8 @@ class Ros2ClockPublisher:
 
     The session is a Zenoh peer that connects to ``connect`` (default: rmw_zenoh's router on
     ``tcp/127.0.0.1:7447``) and accepts peers on ``listen``; multicast scouting is off.
-    ``domain_id`` defaults to ``ROS_DOMAIN_ID`` (else 0), as in ROS.
+    ``domain_id`` defaults to ``ROS_DOMAIN_ID`` (else 0), as in ROS. ``wall_clock_ns`` gives
+    the attachments' source timestamps (wall-clock ns since the epoch, as rmw_zenoh sends).
 
     Publish with :meth:`publish`, every physics step with :meth:`attach`, or at a sim-time
     rate with :meth:`run`. Close it (or use it as a context manager) to withdraw it from the

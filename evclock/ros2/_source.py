@@ -21,7 +21,7 @@ import logging
 import math
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any, Final
 
 from .._errors import ClockLost, InvalidArgumentError, InvalidTypeError, Ros2MessageError
@@ -95,7 +95,6 @@ class Ros2ClockSource(TimeSource):
         listen: Sequence[str] = DEFAULT_LISTEN,
         startup_timeout: float | None = None,
         silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT,
-        wall: Callable[[], float] = time.monotonic,
     ) -> None:
         self._domain_id = resolve_domain_id(domain_id)
         self._topic = resolve_topic(topic)
@@ -104,7 +103,6 @@ class Ros2ClockSource(TimeSource):
         listen = check_endpoints(listen, "listen")
         startup = _check_timeout(startup_timeout, "startup_timeout")
         self._silence_timeout = _check_timeout(silence_timeout, "silence_timeout")
-        self._wall = wall
         self._key_expr = clock_subscription_key_expr(self._domain_id, self._topic)
         self._zenoh = require("zenoh")
         self._now = 0
@@ -205,7 +203,7 @@ class Ros2ClockSource(TimeSource):
         last = self._last_arrival
         if limit is None or last is None:
             return
-        silent = self._wall() - last
+        silent = time.monotonic() - last
         if silent > limit:
             raise ClockLost(
                 f"no {self._topic} message for {silent:.1f} s of wall time (the last one said "
@@ -229,7 +227,7 @@ class Ros2ClockSource(TimeSource):
                     )
                 return
             self._inbox.append((str(sample.key_expr), sample.payload.to_bytes()))
-            self._last_arrival = self._wall()
+            self._last_arrival = time.monotonic()
             self._first.set()
             loop = self._loop
             if loop is None or not self._loop_wakeable:
