@@ -27,5 +27,5 @@ def source_from_clock_url(url: object) -> TimeSource:
     factory = CLOCK_SCHEMES.get(scheme) if sep else None
     if factory is None:
         known = ", ".join(f"{s}://" for s in CLOCK_SCHEMES)
-        raise InvalidArgumentError(f"unsupported clock URL {url!r}; known schemes: {known}")
+        raise InvalidArgumentError(f"unsupported clock {url!r}: known schemes are {known}")
     return factory(url)

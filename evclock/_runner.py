@@ -217,15 +217,15 @@ def _clock_url(clock: str | None, source: TimeSource | None, sim: bool) -> str |
     url = clock if clock is not None else env_clock()
     if url is None:
         return None
-    origin = "clock=" if clock is not None else ENV_CLOCK
+    where = "clock=" if clock is not None else f"{ENV_CLOCK}="
     if not sim:
         raise InvalidArgumentError(
-            f"{origin} asks to follow {url!r} but use_sim_time resolved to False (argument or "
-            f"{ENV_USE_SIM_TIME}); drop one of them"
+            f"{where}{url!r} asks to follow an outside clock but use_sim_time resolved to False "
+            f"(argument or {ENV_USE_SIM_TIME}); drop one of them"
         )
     if source is not None:
         raise InvalidArgumentError(
-            f"both a time source and {origin} {url!r} were given; a program follows one clock: "
+            f"{where}{url!r} and a time source were both given; a program follows one clock: "
             "drop one of them"
         )
     return url

@@ -248,7 +248,7 @@ def test_bad_clock_urls_are_reported(url: str, message: str) -> None:
 
 
 def test_unknown_clock_url_scheme_is_reported() -> None:
-    with pytest.raises(InvalidArgumentError, match=r"unsupported clock URL 'udp://x'.*ros2://"):
+    with pytest.raises(InvalidArgumentError, match=r"unsupported clock 'udp://x'.*ros2://"):
         evclock.run(_noop(), clock="udp://x")
 
 
@@ -263,7 +263,7 @@ def test_clock_url_and_wall_time_conflict() -> None:
 
 def test_clock_url_and_source_conflict(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("EVCLOCK_CLOCK", "ros2:///clock")
-    with pytest.raises(InvalidArgumentError, match="both a time source and EVCLOCK_CLOCK"):
+    with pytest.raises(InvalidArgumentError, match="EVCLOCK_CLOCK='ros2:///clock'"):
         evclock.run(_noop(), source=evclock.VirtualTimeSource())
 
 
