@@ -29,6 +29,7 @@ from ._diagnostics import render_diagnostics_report
 from ._errors import EvClockError, InvalidArgumentError
 from ._runs import RunReport, parse_rtf, run_scenario
 from ._scenarios import ParamValue, load_scenario, parse_param_values, registered_scenarios
+from .ros2 import _cli as ros2_cli
 
 EXIT_SUCCESS = 0
 EXIT_FAILED = 1
@@ -242,11 +243,29 @@ def run_command(
         bool,
         typer.Option(help="With --serve: physics only; `evclock control` runs the controllers."),
     ] = False,
+    ros2_clock: ros2_cli.Ros2ClockFlag = False,
+    ros_domain_id: ros2_cli.RosDomainId = None,
+    ros2_clock_decimation: ros2_cli.Ros2ClockDecimation = 1,
+    ros2_wire_format: ros2_cli.Ros2WireFormat = ros2_cli.DEFAULT_WIRE_FORMAT,
+    ros2_connect: ros2_cli.Ros2Connect = None,
+    ros2_listen: ros2_cli.Ros2Listen = None,
 ) -> None:
     """Run a scenario with its controllers on evclock time."""
     console = Console()
     try:
         pace = parse_rtf(rtf)
+        ros2 = ros2_cli.options_from_cli(
+            ros2_clock,
+            ros_domain_id,
+            ros2_clock_decimation,
+            ros2_wire_format,
+            ros2_connect,
+            ros2_listen,
+        )
+        if ros2 is not None:
+            if serve is not None:
+                raise InvalidArgumentError("--ros2-clock with --serve is not supported; pick one")
+            console.print(ros2.describe(), soft_wrap=True)
         if wall and pace is not None:
             raise InvalidArgumentError("--wall runs in real time: drop --rtf (or use --rtf max)")
         for path, option in ((json_out, "--json"), (record, "--record")):
@@ -287,6 +306,7 @@ def run_command(
                     wall=wall,
                     record=record,
                     progress=progress,
+                    ros2_clock=ros2,
                 )
     except EvClockError as exc:
         print_error(exc)

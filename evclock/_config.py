@@ -40,6 +40,7 @@ ENV_CLOCK = "EVCLOCK_CLOCK"
 _CLOCK_SCHEMES: dict[str, str | Callable[[str], TimeSource]] = {
     "unix": "evclock._remote._participant:source_from_url",
     "tcp": "evclock._remote._participant:source_from_url",
+    "ros2": "evclock.ros2._url:source_from_url",
 }
 
 

@@ -262,6 +262,11 @@ class SimDriver(PacingControls):
                 f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
                 f"got {type(source).__name__}"
             )
+        elif source.external:  # external-source contract: not hosted by the driver yet
+            raise SimDriverError(
+                f"{source.describe()} follows an outside clock, which SimDriver cannot host "
+                "yet; run the program with evclock.run(main(), source=...) instead"
+            )
         check_rtf(rtf)
         check_max_lag(max_lag)
         if isinstance(max_settle_yields, bool) or not isinstance(max_settle_yields, int):

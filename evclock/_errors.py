@@ -110,7 +110,8 @@ class RemoteClockError(EvClockError, RuntimeError):
 
 
 class ClockLost(RemoteClockError):
-    """A joined process lost its clock server: it closed, died, or stayed silent too long."""
+    """A joined process lost its clock: the clock server closed, died or stayed silent too long,
+    or a followed ROS 2 ``/clock`` went silent."""
 
 
 class JoinRefused(RemoteClockError):
@@ -134,3 +135,7 @@ class ProtocolError(RemoteClockError):
 
 class RemoteCallError(RemoteClockError):
     """A service call to the simulation process failed there (the message says why)."""
+
+
+class Ros2MessageError(EvClockError, ValueError):
+    """A ROS 2 ``/clock`` sample evclock cannot read: bad CDR, invalid time, unknown type hash."""

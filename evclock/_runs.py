@@ -36,6 +36,7 @@ if TYPE_CHECKING:
     from rich.progress import Progress
 
     from ._record import Recorder
+    from .ros2._cli import Ros2ClockOptions
 
 PHYSICS_HZ = 240
 _PROGRESS_PERIOD = 0.05  # sim seconds between progress refreshes
@@ -169,12 +170,14 @@ def run_scenario(
     wall: bool = False,
     record: Path | None = None,
     progress: Progress | None = None,
+    ros2_clock: Ros2ClockOptions | None = None,
 ) -> RunReport:
     """Run ``scenario`` (a name, ``module:Class``, a file, or a class) once and report.
 
     On sim time unless ``wall`` (see the module docstring); ``record`` writes an MCAP
     recording (sim time only); ``progress`` (a rich Progress, refreshed by the run itself)
-    shows sim time and the achieved real-time factor.
+    shows sim time and the achieved real-time factor; ``ros2_clock`` publishes sim time as
+    ROS 2 ``/clock`` meanwhile (see :mod:`evclock.ros2`).
     """
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise InvalidTypeError(f"seed must be an int, got {seed!r}")
@@ -190,9 +193,13 @@ def run_scenario(
     if wall:
         if record is not None:
             raise InvalidArgumentError("--record needs sim time: drop --wall to record a run")
+        if ros2_clock is not None:
+            raise InvalidArgumentError("--ros2-clock publishes sim time: drop --wall")
         report = _run_on_wall_time(cls, float(limit), seed, gui, progress)
     else:
-        report = _run_on_sim_time(cls, float(limit), rtf, seed, params, gui, record, progress)
+        report = _run_on_sim_time(
+            cls, float(limit), rtf, seed, params, gui, record, progress, ros2_clock
+        )
     report.params = params
     return report
 
@@ -222,7 +229,9 @@ def _run_on_sim_time(
     gui: bool,
     record: Path | None,
     progress: Progress | None,
+    ros2_clock: Ros2ClockOptions | None = None,
 ) -> RunReport:
+    from .ros2._cli import publishing
     from .sources import PyBulletTimeSource
 
     output: list[str] = []
@@ -295,7 +304,8 @@ def _run_on_sim_time(
 
     report: RunReport | None = None
     try:
-        report = evclock_run(main(), source=source, rtf=rtf)
+        with publishing(source, ros2_clock):
+            report = evclock_run(main(), source=source, rtf=rtf)
     finally:
         if recorder is not None:
             recorder.close(None if report is None else _outcome(report))

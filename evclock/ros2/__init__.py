@@ -1,0 +1,67 @@
+"""ROS 2 interop: publish and follow ``/clock`` over Zenoh in the rmw_zenoh wire format.
+
+No ROS installation is needed: ROS 2's Zenoh middleware (rmw_zenoh) speaks a documented wire
+format that evclock writes and reads itself. Install the extra first::
+
+    pip install 'evclock[ros2]'
+
+* :class:`Ros2ClockPublisher` publishes a simulation's time as ``/clock`` (``evclock run SIM
+  --ros2-clock``): ROS 2 nodes on rmw_zenoh with ``use_sim_time:=true`` follow it.
+* :class:`Ros2ClockSource` is a time source that follows a ROS 2 ``/clock``
+  (``EVCLOCK_CLOCK=ros2:///clock`` or ``evclock.run(main(), clock="ros2:///clock")``).
+* The wire format itself (key expressions, CDR payload, attachments, liveliness tokens) is
+  exposed for tests and tools: :func:`clock_key_expr`, :func:`encode_clock`,
+  :func:`decode_clock`, :func:`encode_attachment`, :data:`WIRE_FORMATS`.
+
+Importing this module does not import Zenoh; opening a publisher or a source does.
+"""
+
+from ._publisher import Ros2ClockPublisher
+from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN
+from ._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
+from ._url import source_from_url
+from ._wire import (
+    CLOCK_DDS_TYPE,
+    CLOCK_QOS,
+    CLOCK_TYPE,
+    CLOCK_TYPE_HASH,
+    DEFAULT_WIRE_FORMAT,
+    ENV_ROS_DOMAIN_ID,
+    HUMBLE_TYPE_HASH,
+    WIRE_FORMATS,
+    WireFormat,
+    clock_key_expr,
+    decode_clock,
+    encode_attachment,
+    encode_clock,
+    endpoint_token,
+    entity_gid,
+    node_token,
+    resolve_domain_id,
+)
+
+__all__ = [
+    "CLOCK_DDS_TYPE",
+    "CLOCK_QOS",
+    "CLOCK_TYPE",
+    "CLOCK_TYPE_HASH",
+    "DEFAULT_CONNECT",
+    "DEFAULT_LISTEN",
+    "DEFAULT_SILENCE_TIMEOUT",
+    "DEFAULT_WIRE_FORMAT",
+    "ENV_ROS_DOMAIN_ID",
+    "HUMBLE_TYPE_HASH",
+    "WIRE_FORMATS",
+    "Ros2ClockPublisher",
+    "Ros2ClockSource",
+    "WireFormat",
+    "clock_key_expr",
+    "decode_clock",
+    "encode_attachment",
+    "encode_clock",
+    "endpoint_token",
+    "entity_gid",
+    "node_token",
+    "resolve_domain_id",
+    "source_from_url",
+]

@@ -1,0 +1,151 @@
+"""``evclock run SIM --ros2-clock``: the command-line options and the publishing they start.
+
+``evclock/_cli.py`` declares these options with the types below and wraps the simulation run
+in :func:`publishing`; everything ROS 2 specific stays here.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Annotated
+
+import typer
+
+from .._errors import InvalidArgumentError
+from ._publisher import Ros2ClockPublisher
+from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints
+from ._wire import DEFAULT_WIRE_FORMAT as DEFAULT_WIRE_FORMAT  # the --ros2-wire-format default
+from ._wire import (
+    ENV_ROS_DOMAIN_ID,
+    WIRE_FORMATS,
+    clock_key_expr,
+    resolve_domain_id,
+    wire_format,
+)
+
+if TYPE_CHECKING:
+    from ..sources import PyBulletTimeSource
+
+Ros2ClockFlag = Annotated[
+    bool,
+    typer.Option(
+        "--ros2-clock",
+        help="Publish sim time as ROS 2 /clock over Zenoh (rmw_zenoh format; ros2 extra).",
+    ),
+]
+RosDomainId = Annotated[
+    int | None,
+    typer.Option("--ros-domain-id", help=f"ROS domain id (default: ${ENV_ROS_DOMAIN_ID}, else 0)."),
+]
+Ros2ClockDecimation = Annotated[
+    int,
+    typer.Option(
+        "--ros2-clock-decimation", help="Publish /clock every K physics steps (1 = every step)."
+    ),
+]
+Ros2WireFormat = Annotated[
+    str,
+    typer.Option(
+        "--ros2-wire-format",
+        help=f"rmw_zenoh wire variant: {', '.join(WIRE_FORMATS)} (default {DEFAULT_WIRE_FORMAT}).",
+    ),
+]
+Ros2Connect = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--ros2-connect",
+        help=f"Zenoh endpoint to connect to, repeatable (default {DEFAULT_CONNECT[0]}: "
+        "rmw_zenoh's router).",
+    ),
+]
+Ros2Listen = Annotated[
+    list[str] | None,
+    typer.Option(
+        "--ros2-listen",
+        help=f"Zenoh endpoint accepting peers, repeatable (default {DEFAULT_LISTEN[0]}).",
+    ),
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class Ros2ClockOptions:
+    """What ``--ros2-clock`` and its companions asked for, validated."""
+
+    domain_id: int
+    decimation: int
+    wire_format: str
+    connect: tuple[str, ...]
+    listen: tuple[str, ...]
+
+    @property
+    def key_expr(self) -> str:
+        return clock_key_expr(self.domain_id, "/clock", wire_format(self.wire_format))
+
+    def describe(self) -> str:
+        every = "every step" if self.decimation == 1 else f"every {self.decimation} steps"
+        return (
+            f"publishing /clock {every} on {self.key_expr} ({self.wire_format} wire format), "
+            f"connecting to {', '.join(self.connect) or 'nothing'}, listening on "
+            f"{', '.join(self.listen) or 'nothing'}"
+        )
+
+
+def options_from_cli(
+    enabled: bool,
+    domain_id: int | None,
+    decimation: int,
+    wire: str,
+    connect: list[str] | None,
+    listen: list[str] | None,
+) -> Ros2ClockOptions | None:
+    """Validate the options; None when ``--ros2-clock`` is off (then the others are errors)."""
+    if not enabled:
+        given = [
+            name
+            for name, value, default in (
+                ("--ros-domain-id", domain_id, None),
+                ("--ros2-clock-decimation", decimation, 1),
+                ("--ros2-wire-format", wire, DEFAULT_WIRE_FORMAT),
+                ("--ros2-connect", connect, None),
+                ("--ros2-listen", listen, None),
+            )
+            if value != default
+        ]
+        if given:
+            raise InvalidArgumentError(f"{', '.join(given)}: only with --ros2-clock")
+        return None
+    if decimation < 1:
+        raise InvalidArgumentError(
+            f"--ros2-clock-decimation must be >= 1 (1 = every step), got {decimation}"
+        )
+    return Ros2ClockOptions(
+        domain_id=resolve_domain_id(domain_id),
+        decimation=decimation,
+        wire_format=wire_format(wire).name,
+        connect=check_endpoints(DEFAULT_CONNECT if connect is None else connect, "--ros2-connect"),
+        listen=check_endpoints(DEFAULT_LISTEN if listen is None else listen, "--ros2-listen"),
+    )
+
+
+@contextlib.contextmanager
+def publishing(
+    source: PyBulletTimeSource, options: Ros2ClockOptions | None
+) -> Iterator[Ros2ClockPublisher | None]:
+    """Publish ``source``'s time as /clock while the block runs (nothing when ``options`` is
+    None)."""
+    if options is None:
+        yield None
+        return
+    with Ros2ClockPublisher(
+        domain_id=options.domain_id,
+        wire_format=options.wire_format,
+        connect=options.connect,
+        listen=options.listen,
+    ) as publisher:
+        hook = publisher.attach(source, decimation=options.decimation)
+        try:
+            yield publisher
+        finally:
+            hook.remove()

@@ -1,0 +1,318 @@
+"""Following a ROS 2 ``/clock`` over Zenoh: an external time source for the simulation loop.
+
+A controller launched with ``EVCLOCK_CLOCK=ros2:///clock`` (or ``clock=``) runs on the time
+of a ROS 2 simulator (Gazebo through ``ros_gz_bridge``, or an evclock simulation publishing
+``/clock``) as an rclpy node with ``use_sim_time`` would: sleeps, rates, timers and asyncio
+timeouts follow it.
+
+How it fits the loop (the external-source contract): a daemon thread reads Zenoh samples into
+an inbox and wakes the loop with ``call_soon_threadsafe``; on the loop thread, ``advance()``
+reads the inbox and moves time toward the newest ``/clock`` value, never past the loop's next
+deadline, or returns the time unchanged - "waiting for the outside" - and the loop waits for
+I/O. A backward step of ``/clock`` below the loop's time (a simulator reset) is a jump with
+evclock's jump policy. Liveness is the source's job: after ``silence_timeout`` wall seconds
+without a sample it raises :class:`~evclock.ClockLost` from ``advance()``.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from collections.abc import Sequence
+from typing import Any, Final
+
+from .._errors import ClockLost, InvalidArgumentError, InvalidTypeError, Ros2MessageError
+from .._time import SIM, Time
+from ..sources import Gate, TimeSource
+from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints, open_session, require
+from ._wire import (
+    check_node_name,
+    check_type_hash,
+    clock_subscription_key_expr,
+    decode_clock,
+    endpoint_token,
+    node_token,
+    resolve_domain_id,
+    resolve_topic,
+)
+
+logger = logging.getLogger("evclock.ros2")
+
+#: Default wall seconds without a ``/clock`` sample before the source gives up (ClockLost).
+DEFAULT_SILENCE_TIMEOUT: Final = 10.0
+#: Samples buffered between the Zenoh network and the reader thread, and between the reader
+#: thread and the loop (the oldest are dropped beyond that; only the newest time matters).
+_CHANNEL_CAPACITY: Final = 1024
+#: How long close() waits for the reader thread to see its channel closed (wall seconds).
+_JOIN_TIMEOUT: Final = 5.0
+_NODE_ID = 0
+_SUBSCRIPTION_ID = 1
+
+
+def _check_timeout(value: object, what: str) -> float | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        raise InvalidTypeError(f"{what} must be wall seconds or None, got {type(value).__name__}")
+    if math.isnan(value) or value <= 0:
+        raise InvalidArgumentError(
+            f"{what} must be a positive number of seconds or None, got {value!r}"
+        )
+    return float(value)
+
+
+class Ros2ClockSource(TimeSource):
+    """Sim time that follows a ROS 2 ``rosgraph_msgs/msg/Clock`` topic arriving over Zenoh.
+
+    Construction opens a Zenoh peer session (``connect``/``listen`` endpoints as for
+    :class:`~evclock.ros2.Ros2ClockPublisher`), subscribes to ``topic`` in ``domain_id``
+    (default ``ROS_DOMAIN_ID``, else 0) with any rmw_zenoh wire format (Humble's or Jazzy's
+    key), declares a node and a subscription in the ROS graph, and **waits for the first
+    message**: the program starts at the publisher's time, as an rclcpp node waiting with
+    ``Clock::wait_until_started()``. ``startup_timeout`` bounds that wait (None: wait as long
+    as it takes, logging a warning every ``silence_timeout``).
+
+    Once running, time moves toward each newer ``/clock`` value, firing local deadlines in
+    order; a ``/clock`` older than the loop's time is a backward jump (jump handlers run,
+    ``clock.sleep`` sleepers get :class:`~evclock.ClockJumped`, rates and timers re-anchor).
+    If no sample arrives for ``silence_timeout`` wall seconds while the loop waits for one,
+    :class:`~evclock.ClockLost` ends the run (None: wait forever).
+    """
+
+    external = True
+    free_running = True  # idle is not a deadlock: time comes from outside
+
+    def __init__(
+        self,
+        *,
+        domain_id: int | None = None,
+        topic: str = "/clock",
+        node_name: str = "evclock_follower",
+        connect: Sequence[str] = DEFAULT_CONNECT,
+        listen: Sequence[str] = DEFAULT_LISTEN,
+        startup_timeout: float | None = None,
+        silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT,
+    ) -> None:
+        self._domain_id = resolve_domain_id(domain_id)
+        self._topic = resolve_topic(topic)
+        node_name = check_node_name(node_name)
+        self._connect = check_endpoints(connect, "connect")
+        listen = check_endpoints(listen, "listen")
+        startup = _check_timeout(startup_timeout, "startup_timeout")
+        self._silence_timeout = _check_timeout(silence_timeout, "silence_timeout")
+        self._key_expr = clock_subscription_key_expr(self._domain_id, self._topic)
+        self._zenoh = require("zenoh")
+        self._now = 0
+        self._latest: int | None = None
+        self._received = 0
+        self._inbox: collections.deque[tuple[str, bytes]] = collections.deque(
+            maxlen=_CHANNEL_CAPACITY
+        )
+        self._first = threading.Event()
+        self._last_arrival: float | None = None
+        self._error: BaseException | None = None
+        self._closing = False
+        self._wake_lock = threading.Lock()
+        self._wake_pending = False
+        self._loop_wakeable = False
+        self._session: Any = open_session(self._connect, listen)
+        try:
+            zid = str(self._session.zid())
+            liveliness = self._session.liveliness()
+            self._tokens = [
+                liveliness.declare_token(token)
+                for token in (
+                    node_token(self._domain_id, zid, _NODE_ID, node_name),
+                    endpoint_token(
+                        "MS",
+                        self._domain_id,
+                        zid,
+                        _NODE_ID,
+                        _SUBSCRIPTION_ID,
+                        node_name,
+                        self._topic,
+                    ),
+                )
+            ]
+            # A channel, not a Python callback: zenoh runs callbacks on non-daemon threads
+            # of its own, which the loop would take for busy work holding sim time.
+            self._subscriber: Any = self._session.declare_subscriber(
+                self._key_expr, self._zenoh.handlers.RingChannel(_CHANNEL_CAPACITY)
+            )
+            self._reader = threading.Thread(
+                target=self._read, name=f"evclock ros2 {self._topic} reader", daemon=True
+            )
+            self._reader.start()
+            self._wait_for_first(startup)
+        except BaseException:
+            self.close()
+            raise
+
+    # ------------------------------------------------------------------ facts
+
+    @property
+    def now_ns(self) -> int:
+        return self._now
+
+    @property
+    def latest(self) -> Time | None:
+        """The newest ``/clock`` time received (the loop may still be behind it)."""
+        return None if self._latest is None else Time._from_ns(self._latest, SIM)
+
+    @property
+    def received(self) -> int:
+        """How many ``/clock`` samples the loop has read."""
+        return self._received
+
+    @property
+    def key_expr(self) -> str:
+        """The Zenoh key expression subscribed to (any type hash)."""
+        return self._key_expr
+
+    def describe(self) -> str:
+        return (
+            f"ROS 2 {self._topic} (domain {self._domain_id}) over Zenoh via "
+            f"{', '.join(self._connect) or 'listen only'}"
+        )
+
+    # ------------------------------------------------------------------ the contract
+
+    def advance(self, target_ns: int | None, gate: Gate) -> int:
+        self._loop_wakeable = True  # from now on the loop is running: wake it on arrival
+        jumped = self._drain()
+        if self._error is not None:
+            raise self._error
+        now = self._now
+        if jumped:
+            return now  # the jump moved the deadlines: the host asks again with a new target
+        latest = self._latest
+        if latest is not None and latest > now:
+            new = latest if target_ns is None else min(target_ns, latest)
+            if new > now and (gate is None or gate(new)):
+                self._now = new
+                return new
+            return now
+        self._check_silence()
+        return now
+
+    def _check_silence(self) -> None:
+        limit = self._silence_timeout
+        last = self._last_arrival
+        if limit is None or last is None:
+            return
+        silent = time.monotonic() - last
+        if silent > limit:
+            raise ClockLost(
+                f"no {self._topic} message for {silent:.1f} s of wall time (the last one said "
+                f"{self._now / 1e9:.9f} s) from {self.describe()}; the publisher stopped or the "
+                f"connection is lost; raise silence_timeout (now {limit:g} s) or pass None to "
+                "wait forever"
+            )
+
+    # ------------------------------------------------------------------ arrival
+
+    def _read(self) -> None:
+        """Reader thread: move samples from Zenoh's channel to the inbox, wake the loop."""
+        handler = self._subscriber.handler
+        while True:
+            try:
+                sample = handler.recv()
+            except self._zenoh.ZError as exc:
+                if not self._closing:
+                    self._error = ClockLost(
+                        f"the Zenoh subscription to {self._key_expr} failed: {exc}"
+                    )
+                return
+            self._inbox.append((str(sample.key_expr), sample.payload.to_bytes()))
+            self._last_arrival = time.monotonic()
+            self._first.set()
+            loop = self._loop
+            if loop is None or not self._loop_wakeable:
+                continue  # the loop reads the inbox on its first advance
+            with self._wake_lock:
+                if self._wake_pending:
+                    continue
+                self._wake_pending = True
+            try:
+                loop.call_soon_threadsafe(self._drain_woken)  # type: ignore[attr-defined]
+            except RuntimeError:
+                return  # the loop closed under us: nobody is following any more
+
+    def _drain_woken(self) -> None:
+        with self._wake_lock:
+            self._wake_pending = False
+        self._drain()
+
+    def _drain(self) -> bool:
+        """On the loop's thread: read the inbox in arrival order; True if time jumped."""
+        inbox = self._inbox
+        jumped = False
+        while inbox:
+            key_expr, payload = inbox.popleft()
+            try:
+                check_type_hash(key_expr)
+                time_ns = decode_clock(payload)
+            except Ros2MessageError as exc:
+                self._error = exc
+                return jumped
+            self._received += 1
+            loop = self._loop
+            if loop is None:
+                self._now = time_ns  # not running yet: the start follows the newest time
+            elif time_ns < self._now:
+                # The simulator went back (a reset): a jump, with evclock's jump policy.
+                loop._jump_time(self._now, time_ns, self._assign)
+                jumped = True
+            self._latest = time_ns
+        return jumped
+
+    def _assign(self, new_ns: int) -> None:
+        self._now = new_ns
+
+    def _wait_for_first(self, timeout: float | None) -> None:
+        waited = 0.0
+        report_every = self._silence_timeout or DEFAULT_SILENCE_TIMEOUT
+        while True:
+            step = report_every if timeout is None else min(report_every, timeout - waited)
+            if self._first.wait(step):
+                break
+            waited += step
+            if self._error is not None:
+                raise self._error
+            if timeout is not None and waited >= timeout:
+                raise ClockLost(
+                    f"no {self._topic} message arrived within startup_timeout={timeout:g} s "
+                    f"from {self.describe()}; is the simulator publishing, in domain "
+                    f"{self._domain_id}, reachable through those endpoints?"
+                )
+            logger.warning(
+                "still waiting for the first %s message after %.1f s (%s)",
+                self._topic,
+                waited,
+                self.describe(),
+            )
+        self._drain()
+        if self._error is not None:
+            raise self._error
+
+    # ------------------------------------------------------------------ closing
+
+    def close(self) -> None:
+        """Withdraw from the ROS graph, stop the reader thread and close the session."""
+        if self._closing:
+            return
+        self._closing = True
+        try:
+            for token in getattr(self, "_tokens", ()):
+                token.undeclare()
+            subscriber = getattr(self, "_subscriber", None)
+            if subscriber is not None:
+                subscriber.undeclare()  # closes the channel: the reader thread returns
+        finally:
+            self._session.close()
+        reader = getattr(self, "_reader", None)
+        if reader is not None and reader is not threading.current_thread():
+            reader.join(_JOIN_TIMEOUT)
