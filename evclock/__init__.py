@@ -29,11 +29,11 @@ from ._errors import (
     PacingError,
     ParticipantLost,
     PhysicsError,
-    ScenarioError,
     ProtocolError,
     RemoteCallError,
     RemoteClockError,
     Ros2MessageError,
+    ScenarioError,
     SimDriverError,
     SimTimeLimitError,
     StallError,
@@ -48,11 +48,11 @@ from ._record import record
 from ._remote._participant import RemoteClockSource, participant
 from ._remote._server import ClockServer, Message, serve
 from ._runner import loop_factory, resolve_use_sim_time, run
-from ._stamped import StampClock, Stamped, StampKey, stamp_of
-from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
 from ._runs import LoopReport, RunReport, run_scenario
 from ._scenarios import ENTRY_POINT_GROUP, load_scenario, parameters
+from ._stamped import StampClock, Stamped, StampKey, stamp_of
 from ._sweep import RunSpec, SweepResult, SweepRow, plan, sweep
+from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from ._trace import Divergence, Trace, TraceMessage, first_divergence, read_trace
 from .ros2 import Ros2ClockPublisher, Ros2ClockSource
@@ -172,6 +172,8 @@ def __getattr__(name: str) -> Any:
 
         return getattr(_buffer, name)
     raise AttributeError(f"module 'evclock' has no attribute {name!r}")
+
+
 # Errors show their public name in tracebacks and reprs (evclock.InvalidArgumentError, not
 # evclock._errors.InvalidArgumentError); they pickle by that name too.
 for _name in __all__:

@@ -292,7 +292,12 @@ def run_command(
         with progress_bar(console, quiet) as progress:
             if serve is not None:
                 report = _served(serve, remote_controllers)(
-                    scenario, until=until, rtf=pace, seed=seed, gui=gui, wall=wall,
+                    scenario,
+                    until=until,
+                    rtf=pace,
+                    seed=seed,
+                    gui=gui,
+                    wall=wall,
                     progress=progress,
                 )
             else:

@@ -95,6 +95,8 @@ class TimeLookupError(EvClockError, LookupError):
 
 class ExtrapolationError(TimeLookupError):
     """A buffer lookup lies further outside the kept samples than ``max_extrapolation``."""
+
+
 class ScenarioError(EvClockError, RuntimeError):
     """A scenario cannot be found or loaded: an import failure, a name registered twice."""
 
@@ -105,6 +107,8 @@ class MissingExtraError(EvClockError, ImportError):
 
 class TraceError(EvClockError, ValueError):
     """A recorded trace (MCAP file) cannot be read, or is not an evclock recording."""
+
+
 class RemoteClockError(EvClockError, RuntimeError):
     """Base class of the errors of sim time across processes (clock servers, participants)."""
 

@@ -57,6 +57,8 @@ def _rtf(rtf: float | str | None) -> float | None:
             f"rtf takes 'max' or None (as fast as possible) or a positive number, got {rtf!r}"
         )
     return rtf
+
+
 def _check_remote_options(where: str, url: str, *, rtf: float | None, paused: bool) -> None:
     if rtf is not None or paused:
         raise InvalidArgumentError(
@@ -85,6 +87,7 @@ def loop_factory(
     as ``unix:///tmp/sim.sock``) makes each loop join that clock server instead (see
     :func:`run`); unlike :func:`run`, a loop factory does not read ``EVCLOCK_CLOCK``.
     """
+    rtf = _rtf(rtf)
     if clock is not None:
         if source is not None:
             raise InvalidArgumentError(
@@ -107,7 +110,6 @@ def loop_factory(
         raise InvalidArgumentError(
             "start= applies to virtual time only; a custom source sets its own time"
         )
-    rtf = _rtf(rtf)
     make_source = source or functools.partial(VirtualTimeSource, start_ns)
     # Validate the options once, now, rather than at the first loop creation.
     SimEventLoop(
