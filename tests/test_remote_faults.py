@@ -209,7 +209,7 @@ def test_the_server_dying_or_stopping_is_clock_lost_in_the_participant(
         reap(server)
     assert code == 1
     last = err.strip().splitlines()[-1]
-    assert last.startswith("evclock._errors.ClockLost: the clock server at unix://")
+    assert last.startswith("evclock.ClockLost: the clock server at unix://")
     assert re_search(message, last)
 
 
@@ -237,7 +237,7 @@ def test_duplicate_names_are_refused_and_the_server_keeps_running(tmp_path: Path
 
     refused, out = evclock.run(main())
     assert refused == (
-        f"evclock._errors.JoinRefused: the clock server at {url} refused 'twin': a participant "
+        f"evclock.JoinRefused: the clock server at {url} refused 'twin': a participant "
         "named 'twin' is already joined; give this process another name (?name=... in the "
         "clock address)"
     )

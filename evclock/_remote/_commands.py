@@ -121,6 +121,7 @@ def serve_scenario(
             summary=summary,
             loops=_loops_from(handed["loops"]) if remote_controllers else _loop_reports(clk),
             final_state=scenario.state_vector(),
+            until_s=limit,
         )
 
     return evclock_run(main(), source=source, rtf=rtf)
@@ -187,6 +188,7 @@ def control_scenario(
             summary=scenario.summary(),
             loops=_loop_reports(clk),
             final_state=json.loads(link.call(STATE_SERVICE)),
+            until_s=limit,
         )
         link.publish(REPORT_TOPIC, json.dumps(report.to_json()).encode())
         return report
@@ -214,16 +216,16 @@ def control_command(
     """Run a scenario's controllers in lockstep with a simulation served by another process."""
     from rich.console import Console
 
-    from .._cli import render_report
+    from .._cli import exit_code, print_error, render_report
 
     console = Console()
     try:
         report = control_scenario(sim, clock_url=clock_url, seed=seed, until=until)
     except EvClockError as exc:
-        console.print(f"[red]error:[/red] {exc}")
+        print_error(exc)
         raise typer.Exit(2) from None
     if not quiet:
         render_report(report, console)
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
-    raise typer.Exit(0 if report.success else 1)
+    raise typer.Exit(exit_code(report))
