@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import abc
 import asyncio
-import asyncio.futures
 import time
 import weakref
 from collections.abc import Awaitable
-from heapq import heappush
+from typing import TYPE_CHECKING
 
 from . import _precise
 from ._config import env_use_sim_time
@@ -24,7 +23,10 @@ from ._loop import SimEventLoop
 from ._rate import Policy, Rate, Timer, TimerCallback
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds
 
-_Future = asyncio.futures.Future
+if TYPE_CHECKING:
+    from ._core import SimCore
+    from ._pacing import PacingControls
+
 _NEGATIVE_HINT = "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
 
 
@@ -155,57 +157,58 @@ class Clock(abc.ABC):
 
 
 class SimClock(Clock):
-    """The clock of a :class:`SimEventLoop`: simulation time, exact integer nanoseconds."""
+    """Simulation time, exact integer nanoseconds: the clock of a :class:`SimEventLoop`, or of
+    a :class:`~evclock.SimDriver` on a loop evclock does not own.
+
+    Its waits must be awaited on :attr:`loop`; :attr:`host` is what controls its time
+    (``pause()``, ``resume()``, ``step()``, ``rtf``).
+    """
 
     clock_type = SIM
 
-    def __init__(self, loop: SimEventLoop) -> None:
+    def __init__(self, core: SimCore, host: PacingControls) -> None:
         super().__init__()
-        self._loop = loop
+        self._core = core
+        self._host = host
+        self._sleep_at = core.sleep_at
 
     @property
-    def loop(self) -> SimEventLoop:
-        """The simulation loop this clock reads."""
-        return self._loop
+    def host(self) -> PacingControls:
+        """What owns this sim time: the :class:`SimEventLoop` or the ``SimDriver``."""
+        return self._host
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop this clock's waits run on (the SimEventLoop itself, or the loop a
+        SimDriver runs on)."""
+        host = self._host
+        assert isinstance(host, SimEventLoop)
+        return host
 
     def now_ns(self) -> int:
-        return self._loop._now_ns
+        return self._core.now_ns
 
     def now(self) -> Time:
-        return Time._from_ns(self._loop._now_ns, SIM)
+        return Time._from_ns(self._core.now_ns, SIM)
 
     def sleep(self, duration: float | Duration) -> asyncio.Future[None]:
         # The hot path of every controller: keep it flat.
         if type(duration) is float and 0.0 <= duration < 1e9:
             ns = round(duration * 1e9)
-        elif type(duration) is Duration:
+        elif type(duration) is Duration and duration._ns >= 0:
             ns = duration._ns
-            if ns < 0:
-                ns = _sleep_ns(duration)
         else:
             ns = _sleep_ns(duration)
-        # Same as _sleep_until_ns(now + ns), inlined: this is every controller's hot path.
-        loop = self._loop
-        if loop._closed:
-            loop._check_closed()
-        fut: asyncio.Future[None] = _Future(loop=loop)
-        heappush(loop._scheduled, (loop._now_ns + ns, loop._seq(), 0, fut))
-        return fut
+        return self._sleep_at(self._core.now_ns + ns)
 
     def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
-        loop = self._loop
-        if loop._closed:
-            loop._check_closed()
-        fut: asyncio.Future[None] = _Future(loop=loop)
-        now = loop._now_ns
-        heappush(loop._scheduled, (when_ns if when_ns > now else now, loop._seq(), 0, fut))
-        return fut
+        return self._sleep_at(when_ns)
 
     def _jump_registry(self) -> list[JumpHandle]:
-        return self._loop._jump_handlers
+        return self._core.jump_handlers
 
     def __repr__(self) -> str:
-        return f"<SimClock now={self.now()} source={self._loop.source.describe()}>"
+        return f"<SimClock now={self.now()} source={self._core.source.describe()}>"
 
 
 class WallClock(Clock):

@@ -10,8 +10,8 @@ from typing import Any, TypeVar
 from ._clock import WallClock, attach_clock
 from ._config import ENV_USE_SIM_TIME, env_use_sim_time
 from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
-from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
-from ._pacing import DEFAULT_MAX_LAG
+from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop, check_stall_timeout
+from ._pacing import DEFAULT_MAX_LAG, check_max_lag, check_rtf
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds
 from .sources import TimeSource, VirtualTimeSource
 
@@ -73,9 +73,9 @@ def loop_factory(
         )
     make_source = source or functools.partial(VirtualTimeSource, start_ns)
     # Validate the options once, now, rather than at the first loop creation.
-    SimEventLoop(
-        VirtualTimeSource(), rtf=rtf, strict=strict, max_lag=max_lag, stall_timeout=stall_timeout
-    ).close()
+    check_rtf(rtf)
+    check_max_lag(max_lag)
+    check_stall_timeout(stall_timeout)
 
     def new_loop() -> SimEventLoop:
         return SimEventLoop(

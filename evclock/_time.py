@@ -41,6 +41,8 @@ __all__ = [
 _NS_PER_S: Final = 1_000_000_000
 _I64_MIN: Final = -(2**63)
 _I64_MAX: Final = 2**63 - 1
+#: The largest sim time (and any Time): sim time lives in [0, MAX_TIME_NS] nanoseconds.
+MAX_TIME_NS: Final = _I64_MAX
 _I32_MIN: Final = -(2**31)
 _I32_MAX: Final = 2**31 - 1
 
@@ -213,6 +215,14 @@ def _time_range_error(ns: int) -> InvalidArgumentError:
     if ns < 0:
         return InvalidArgumentError(f"Time must not be negative, got {ns} ns")
     return _overflow("Time", ns, 0)
+
+
+def format_time_range_error(what: str, ns: int) -> str:
+    """The message for a sim time ``ns`` outside ``[0, MAX_TIME_NS]``."""
+    return (
+        f"{what} would reach {ns} ns, outside sim time's range [0, {_I64_MAX}] ns "
+        "(64-bit nanoseconds, about 292 years); use a shorter duration or an earlier time"
+    )
 
 
 def _check_time_ns(ns: int) -> int:

@@ -434,8 +434,7 @@ class PyBulletTimeSource(TimeSource):
 
     def _advance_slow(self, target_ns: int | None, gate: Gate) -> int:
         """One step at a time: gate, before-hooks, step, after-hooks, waiters."""
-        loop = self._loop
-        ready: Any = loop._ready if loop is not None else ()
+        host = self._host
         step = self._step
         clients = self._clients
         self._advancing = True
@@ -455,14 +454,16 @@ class PyBulletTimeSource(TimeSource):
                 self._steps += 1
                 self._step_index += 1
                 self._now = now = self._base_ns + self._steps * self._num // self._den
-                if loop is not None:
-                    # Hooks, predicates and the pacer read the loop's time during the advance.
-                    loop._now_ns = now
+                if host is not None:
+                    # Hooks, predicates and the pacer read the clock during the advance.
+                    host.stepped_to(now)
                 if self._after:
                     self._run_hooks(self._after)
                 if self._waiters:
                     self._check_waiters(now)
-                if ready or target_ns is None or now >= target_ns:
+                if target_ns is None or now >= target_ns:
+                    break
+                if host is not None and host.work_ready():
                     break
         finally:
             self._advancing = False
@@ -529,10 +530,10 @@ class PyBulletTimeSource(TimeSource):
             except Exception as exc:
                 hook._exception = exc
                 hook.remove()
-                loop = self._loop
-                if loop is None:
+                host = self._host
+                if host is None:
                     raise
-                loop.call_exception_handler(
+                host.call_exception_handler(
                     {
                         "message": f"evclock step hook {_describe_callable(hook._fn)} raised; "
                         "hook removed",
@@ -559,11 +560,11 @@ class PyBulletTimeSource(TimeSource):
         """
         when = self.time_of_step(count)
         loop = asyncio.get_running_loop()
-        if self._loop is None or not self._loop._runs_on(loop):
+        if self._host is None or not self._host.serves(loop):
             raise NotRunningError(self._wrong_loop("sleep_steps()"))
         if count < 1:
             raise InvalidArgumentError(f"sleep_steps() count must be >= 1, got {count}")
-        await self._loop.clock.sleep_until(when)
+        await self._host.clock.sleep_until(when)
 
     @staticmethod
     def _wrong_loop(what: str) -> str:
@@ -601,7 +602,7 @@ class PyBulletTimeSource(TimeSource):
                 )
             limit = Duration._from_ns(timeout_ns)
         loop = asyncio.get_running_loop()
-        if self._loop is None or not self._loop._runs_on(loop):
+        if self._host is None or not self._host.serves(loop):
             raise NotRunningError(self._wrong_loop("wait_until()"))
         if predicate():
             return Time._from_ns(self._now, SIM)
@@ -756,13 +757,13 @@ class PyBulletTimeSource(TimeSource):
             self._steps = 0
             self._step_index = step_index
 
-        loop = self._loop
+        host = self._host
         before = self._now
         jump: TimeJump | None = None
-        if loop is None or loop.is_closed() or new_ns == before:
+        if host is None or host.is_closed() or new_ns == before:
             assign(new_ns)
         else:
-            jump = loop._jump_time(before, new_ns, assign)
+            jump = host.jump(before, new_ns, assign)
             waiters, self._waiters = self._waiters, []
             self._update_slow()
             for waiter in waiters:

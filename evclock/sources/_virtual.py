@@ -14,7 +14,6 @@ class VirtualTimeSource(TimeSource):
     """
 
     free_running = False
-    discrete_event = True
 
     def __init__(self, start_ns: int = 0) -> None:
         if type(start_ns) is not int:
@@ -27,16 +26,12 @@ class VirtualTimeSource(TimeSource):
 
     @property
     def now_ns(self) -> int:
-        # Once attached, the loop advances virtual time itself (discrete_event).
-        loop = self._loop
-        return self._now if loop is None else loop.now_ns
+        return self._now
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
-        now = self.now_ns  # the loop may have moved time itself since (discrete_event)
-        if target_ns is not None and target_ns > now and (gate is None or gate(target_ns)):
+        if target_ns is not None and target_ns > self._now and (gate is None or gate(target_ns)):
             self._now = target_ns
-            return target_ns
-        return now
+        return self._now
 
     def set_time(self, new_ns: int) -> None:
         """Move time to ``new_ns`` (backwards or forwards) as a jump, like a simulator reset.
@@ -47,17 +42,11 @@ class VirtualTimeSource(TimeSource):
             raise InvalidArgumentError(
                 f"set_time() needs a non-negative int of nanoseconds, got {new_ns!r}"
             )
-        loop = self._loop
-        if loop is None:
+        host = self._host
+        if host is None:
             self._now = new_ns
             return
-        loop._jump_time(loop.now_ns, new_ns, self._assign)
-
-    def detach(self) -> None:
-        loop = self._loop
-        if loop is not None:
-            self._now = loop.now_ns  # the host moved time itself: keep where it got to
-        super().detach()
+        host.jump(self._now, new_ns, self._assign)
 
     def _assign(self, new_ns: int) -> None:
         self._now = new_ns
