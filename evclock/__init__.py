@@ -30,7 +30,13 @@ from ._loop import SimEventLoop
 from ._rate import LoopStats, Rate, Tick, Timer
 from ._runner import loop_factory, resolve_use_sim_time, run
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
-from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
+from .sources import (
+    PyBulletTimeSource,
+    StepHook,
+    SteppingTimeSource,
+    TimeSource,
+    VirtualTimeSource,
+)
 
 __version__ = "0.1.0"
 
@@ -67,6 +73,7 @@ __all__ = [
     "SimTimeLimitError",
     "StallError",
     "StepHook",
+    "SteppingTimeSource",
     "Tick",
     "Time",
     "TimeJump",
