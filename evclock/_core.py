@@ -87,8 +87,9 @@ class CoreHost(Protocol):
         """A future for a sim-time wait; raises if waits are not possible now or here."""
         ...
 
-    def earlier_deadline(self) -> None:
-        """A deadline before :attr:`SimCore.notify_before` was scheduled: cut a wait short."""
+    def interrupt_wait(self) -> None:
+        """End the host's current wait now: a deadline before :attr:`SimCore.notify_before`
+        was scheduled, time jumped, or an external source received news."""
         ...
 
     def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
@@ -128,7 +129,7 @@ class SimCore:
         self.pacer = Pacer(self._read_now, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall)
         #: After PACING: wall seconds to wait before asking again (None: until a control changes).
         self.pacing_delay: float | None = None
-        #: The host is told (:meth:`CoreHost.earlier_deadline`) of deadlines before this.
+        #: The host is told (:meth:`CoreHost.interrupt_wait`) of deadlines before this.
         self.notify_before: int = -1
         self.jump_handlers: list[JumpHandle] = []
         self._heap: list[tuple[int, int, int, Any]] = []
@@ -153,7 +154,7 @@ class SimCore:
             raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
         heapq.heappush(self._heap, (when_ns, self._seq(), _SLEEP, fut))
         if when_ns < self.notify_before:
-            self.host.earlier_deadline()
+            self.host.interrupt_wait()
         return fut
 
     def call_at(self, when_ns: int, timer: asyncio.TimerHandle) -> None:
@@ -169,7 +170,7 @@ class SimCore:
         """Make time stop exactly at ``when_ns`` on its way (step_until, run_until)."""
         heapq.heappush(self._heap, (when_ns, self._seq(), _MARK, None))
         if when_ns < self.notify_before:
-            self.host.earlier_deadline()
+            self.host.interrupt_wait()
 
     def wait_settled(self, when_ns: int) -> asyncio.Future[None]:
         """A future resolved at ``when_ns`` once the work due then has settled
@@ -177,7 +178,7 @@ class SimCore:
         fut = self._new_future()
         heapq.heappush(self._settled, (when_ns, self._seq(), fut))
         if when_ns < self.notify_before:
-            self.host.earlier_deadline()
+            self.host.interrupt_wait()
         return fut
 
     def next_deadline(self) -> int | None:
@@ -365,6 +366,11 @@ class SimCore:
         """A source moving in several increments publishes each new time (before its hooks)."""
         self.now_ns = now_ns
 
+    def time_arrived(self) -> None:
+        """An external source received news from outside (call it from the reader callback):
+        the host asks the source to advance again at once instead of at its next poll."""
+        self.host.interrupt_wait()
+
     def work_ready(self) -> bool:
         """Whether a task became runnable (a stepping source stops stepping then)."""
         return self._anything_runnable()
@@ -420,7 +426,7 @@ class SimCore:
         for fut in woken:
             fut.set_exception(ClockJumped(jump))
         self.pacer.reanchor()
-        self.host.earlier_deadline()
+        self.host.interrupt_wait()
         for handler in handlers:
             if handler.post is not None:
                 handler.post(jump)

@@ -529,8 +529,8 @@ class SimDriver(PacingControls):
         """Always: the host loop may serve I/O the driver cannot see, so idle is no deadlock."""
         return True
 
-    def earlier_deadline(self) -> None:
-        """A deadline earlier than the one the driver waits for: cut the wait short."""
+    def interrupt_wait(self) -> None:
+        """End the driver's current wait (an earlier deadline, a jump, news from outside)."""
         self._wake_driver()
 
     def serves(self, loop: asyncio.AbstractEventLoop) -> bool:

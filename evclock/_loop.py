@@ -369,8 +369,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._check_closed()
         return _Future(loop=self)
 
-    def earlier_deadline(self) -> None:
-        """Nothing to do: the loop reads the next deadline before every advance."""
+    def interrupt_wait(self) -> None:
+        """Nothing to do: the loop's waits are I/O waits, and whatever calls this runs in
+        the loop (so the wait is over) or comes through the self-pipe (which ends it)."""
 
     def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` are on this sim time (only this loop's)."""

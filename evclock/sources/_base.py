@@ -38,6 +38,11 @@ class SourceHost(Protocol):
         and before the next gate call): hooks, predicates and pacing read the clock."""
         ...
 
+    def time_arrived(self) -> None:
+        """An ``external`` source received news from outside (call it from its reader
+        callback): the host asks it to advance again at once."""
+        ...
+
     def work_ready(self) -> bool:
         """True once a task became runnable: a stepping source stops stepping then."""
         ...
@@ -73,7 +78,9 @@ class TimeSource(abc.ABC):
     #: :meth:`advance` never blocks and may return the time unchanged ("no news yet"); the
     #: host then waits for I/O - the source's messages arrive through the loop (a reader
     #: registered with ``loop.add_reader``, or ``loop.call_soon_threadsafe`` from a foreign
-    #: thread) - and asks again. Liveness is the source's job: it raises an
+    #: thread), which then calls ``host.time_arrived()`` - and asks again (also every 50 ms
+    #: of wall time, so that the source can check its own deadline). Liveness is the
+    #: source's job: it raises an
     #: :class:`~evclock.EvClockError` from ``advance`` (or its reader callback) when the
     #: outside is lost. An external source is ``free_running``: idle is not a deadlock.
     external: bool = False
