@@ -45,7 +45,6 @@ from ._clock import Clock, SimClock, attach_clock, detach_clock
 from ._core import DUE, HELD, MOVED, PACING, WAIT_SOURCE, SimCore
 from ._errors import (
     ClockJumped,
-    ClockMismatchError,
     InvalidArgumentError,
     InvalidTypeError,
     LoopClosedError,
@@ -54,7 +53,7 @@ from ._errors import (
 )
 from ._loop import SimEventLoop
 from ._pacing import DEFAULT_MAX_LAG, PacingControls
-from ._time import MAX_TIME_NS, SIM, Duration, Time, to_nonnegative_nanoseconds
+from ._time import MAX_TIME_NS, SIM, Duration, Time, to_sim_time_ns
 from .sources import TimeSource, VirtualTimeSource
 
 #: Default bound of loop iterations the driver yields, after waking the tasks due at one sim
@@ -434,18 +433,12 @@ class SimDriver(PacingControls):
 
     @staticmethod
     def _target_ns(when: object) -> int:
-        if isinstance(when, Time):
-            if when.clock_type is not SIM:
-                raise ClockMismatchError(
-                    f"run_until() needs a sim time or seconds, got a {when.clock_type.value} time"
-                )
-            return when.nanoseconds
         if isinstance(when, Duration):
             raise InvalidTypeError(
                 "run_until() needs a sim Time or seconds since the sim epoch, got Duration; "
                 "to run for a duration use run_until(sim.now() + duration)"
             )
-        return to_nonnegative_nanoseconds(when, "run_until() time")
+        return to_sim_time_ns(when, "run_until() time")
 
     def _stopped_message(self) -> str:
         message = (

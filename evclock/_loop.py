@@ -43,7 +43,7 @@ from ._jumps import JumpHandle
 from ._pacing import DEFAULT_MAX_LAG, PacingControls
 from ._tasks import describe_tasks
 from ._threads import busy_threads, could_call_back
-from ._time import MAX_TIME_NS
+from ._time import MAX_TIME_NS, real_number
 from .sources import TimeSource, VirtualTimeSource
 
 if TYPE_CHECKING:
@@ -71,15 +71,16 @@ _MAX_TIME_S = MAX_TIME_NS / 1e9
 def check_stall_timeout(value: object) -> float | None:
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float):
+    seconds = real_number(value)
+    if seconds is None:
         raise InvalidTypeError(
             f"stall_timeout must be seconds (a number) or None, got {type(value).__name__}"
         )
-    if math.isnan(value) or value <= 0:
+    if math.isnan(seconds) or seconds <= 0:
         raise InvalidArgumentError(
             f"stall_timeout must be a positive number of wall seconds or None, got {value!r}"
         )
-    return float(value)
+    return seconds
 
 
 class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):

@@ -15,7 +15,7 @@ from ._errors import (
     LagError,
     PacingError,
 )
-from ._time import SIM, Time
+from ._time import SIM, Time, real_number, whole_number
 
 if TYPE_CHECKING:
     from ._core import SimCore
@@ -29,11 +29,11 @@ def check_rtf(rtf: object) -> float | None:
     """Validate a real-time factor: None (as fast as possible) or a positive finite number."""
     if rtf is None:
         return None
-    if isinstance(rtf, bool) or not isinstance(rtf, int | float):
+    value = real_number(rtf)
+    if value is None:
         raise InvalidTypeError(
             f"rtf must be None (as fast as possible) or a positive number, got {type(rtf).__name__}"
         )
-    value = float(rtf)
     if not math.isfinite(value) or value <= 0:
         raise InvalidArgumentError(
             f"rtf must be a positive finite real-time factor (1.0 = real time), got {rtf!r}; "
@@ -44,11 +44,12 @@ def check_rtf(rtf: object) -> float | None:
 
 def check_max_lag(max_lag: object) -> float:
     """Validate a lag bound: a positive finite number of wall seconds."""
-    if isinstance(max_lag, bool) or not isinstance(max_lag, int | float):
+    value = real_number(max_lag)
+    if value is None:
         raise InvalidTypeError(f"max_lag must be a number of seconds, got {type(max_lag).__name__}")
-    if not math.isfinite(max_lag) or max_lag <= 0:
+    if not math.isfinite(value) or value <= 0:
         raise InvalidArgumentError(f"max_lag must be a positive number of seconds, got {max_lag!r}")
-    return float(max_lag)
+    return value
 
 
 class RtfMeter:
@@ -266,11 +267,12 @@ class PacingControls:
         """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
         the next deadline on virtual time), then stay paused."""
         self._require_running("step()")
-        if isinstance(count, bool) or not isinstance(count, int):
+        steps = whole_number(count)
+        if steps is None:
             raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
-        if count < 1:
+        if steps < 1:
             raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
-        self._core.pacer.step(count)
+        self._core.pacer.step(steps)
         self._pacing_changed()
 
     def step_until(self, when: Time) -> None:

@@ -1018,7 +1018,7 @@ def test_control_and_run_until_errors(run: Callable[[Awaitable[Any]], Any]) -> N
                 (
                     Time(seconds=1, clock_type=evclock.SYSTEM),
                     ClockMismatchError,
-                    "run_until() needs a sim time or seconds, got a system time",
+                    "run_until() time must be a sim time, got a system time",
                 ),
             ]
             for when, error, message in run_until_cases:

@@ -15,7 +15,7 @@ from fractions import Fraction
 from typing import TYPE_CHECKING, Any
 
 from .._errors import InvalidArgumentError, InvalidTypeError, PhysicsError
-from .._time import SIM, Duration, Time, to_nanoseconds
+from .._time import SIM, Duration, Time, to_sim_time_ns
 from ._stepping import SteppingTimeSource, format_seconds
 
 if TYPE_CHECKING:
@@ -261,7 +261,7 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
         and timers re-anchor. Returns the jump, or None when time did not move.
         """
         self._check_not_advancing("reset_simulation()")
-        new_ns = self._time_arg(start, "reset_simulation() start")
+        new_ns = to_sim_time_ns(start, "reset_simulation() start")
         pb = self._p
         for cid in self._clients:
             try:
@@ -321,19 +321,6 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
         jump = super().restore_state(state_id)
         self._sync_time_step()
         return jump
-
-    @staticmethod
-    def _time_arg(value: object, what: str) -> int:
-        if isinstance(value, Time):
-            if value.clock_type is not SIM:
-                raise InvalidArgumentError(
-                    f"{what} must be a sim time, got a {value.clock_type.value} time"
-                )
-            return value.nanoseconds
-        ns = to_nanoseconds(value, what)
-        if ns < 0:
-            raise InvalidArgumentError(f"{what} must not be negative, got {value!r}")
-        return ns
 
     # --------------------------------------------------------------- the rest
 

@@ -24,7 +24,15 @@ from .._errors import (
     NotRunningError,
     PhysicsError,
 )
-from .._time import MAX_TIME_NS, SIM, Duration, Time, format_time_range_error, to_nanoseconds
+from .._time import (
+    MAX_TIME_NS,
+    SIM,
+    Duration,
+    Time,
+    format_time_range_error,
+    to_span_ns,
+    whole_number,
+)
 from ._base import Gate, TimeSource
 
 if TYPE_CHECKING:
@@ -169,10 +177,12 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
     free_running = True
 
     def __init__(self, time_step: float | Fraction, *, start_ns: int = 0) -> None:
-        if type(start_ns) is not int:
+        start = whole_number(start_ns)
+        if start is None:
             raise InvalidTypeError(
                 f"start_ns must be an int number of nanoseconds, got {type(start_ns).__name__}"
             )
+        start_ns = start
         if start_ns < 0:
             raise InvalidArgumentError(f"start_ns must not be negative, got {start_ns}")
         if start_ns > MAX_TIME_NS:
@@ -406,11 +416,15 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
 
     def time_of_step(self, count: int) -> Time:
         """The sim time ``count`` steps from now, at the current time step."""
-        if isinstance(count, bool) or not isinstance(count, int):
+        steps = whole_number(count)
+        if steps is None:
             raise InvalidTypeError(f"step count must be an int, got {type(count).__name__}")
-        if count < 0:
+        if steps < 0:
             raise InvalidArgumentError(f"step count must not be negative, got {count}")
-        return Time._from_ns(self._base_ns + (self._steps + count) * self._num // self._den, SIM)
+        ns = self._base_ns + (self._steps + steps) * self._num // self._den
+        if ns > MAX_TIME_NS:
+            raise InvalidArgumentError(format_time_range_error(f"{count} steps", ns))
+        return Time._from_ns(ns, SIM)
 
     async def sleep_steps(self, count: int) -> None:
         """Sleep exactly ``count`` steps (a sim-time sleep: a jump raises ClockJumped).
@@ -456,12 +470,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         deadline: int | None = None
         limit: Duration | None = None
         if timeout is not None:
-            timeout_ns = to_nanoseconds(timeout, "wait_until() timeout")
-            if timeout_ns < 0:
-                raise InvalidArgumentError(
-                    f"wait_until() timeout must not be negative, got {timeout!r}"
-                )
-            limit = Duration._from_ns(timeout_ns)
+            limit = Duration._from_ns(to_span_ns(timeout, "wait_until() timeout"))
         loop = asyncio.get_running_loop()
         if self._host is None or not self._host.serves(loop):
             raise NotRunningError(self._wrong_loop("wait_until()"))

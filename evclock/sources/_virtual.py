@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .._errors import InvalidArgumentError, InvalidTypeError
+from .._time import MAX_TIME_NS, format_time_range_error, whole_number
 from ._base import Gate, TimeSource
 
 
@@ -16,13 +17,16 @@ class VirtualTimeSource(TimeSource):
     free_running = False
 
     def __init__(self, start_ns: int = 0) -> None:
-        if type(start_ns) is not int:
+        start = whole_number(start_ns)
+        if start is None:
             raise InvalidTypeError(
                 f"start_ns must be an int number of nanoseconds, got {type(start_ns).__name__}"
             )
-        if start_ns < 0:
+        if start < 0:
             raise InvalidArgumentError(f"start_ns must not be negative, got {start_ns}")
-        self._now = start_ns
+        if start > MAX_TIME_NS:
+            raise InvalidArgumentError(format_time_range_error("start_ns", start))
+        self._now = start
 
     @property
     def now_ns(self) -> int:
@@ -38,7 +42,7 @@ class VirtualTimeSource(TimeSource):
 
         Jump handlers run and pending sim-time sleeps are woken with :class:`ClockJumped`.
         """
-        if type(new_ns) is not int or new_ns < 0:
+        if type(new_ns) is not int or not 0 <= new_ns <= MAX_TIME_NS:
             raise InvalidArgumentError(
                 f"set_time() needs a non-negative int of nanoseconds, got {new_ns!r}"
             )
