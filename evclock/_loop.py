@@ -121,6 +121,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         def _process_events(self, event_list: list[Any]) -> None: ...
         def _check_callback(self, callback: object, method: str) -> None: ...
 
+    # A loop whose __init__ failed before asyncio's ran (a bad argument) counts as closed, so
+    # that its __del__ has nothing to complain about; asyncio's __init__ sets it to False.
+    _closed = True
+
     def __init__(
         self,
         source: TimeSource | None = None,
@@ -141,9 +145,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
                 f"got {type(source).__name__}"
             )
-        # Validate everything before the selector (a resource) exists; until then the loop
-        # counts as closed, so a rejected loop's __del__ has nothing to complain about.
-        self._closed = True
+        # Validate everything before the selector (a resource) exists.
         self._stall_timeout = check_stall_timeout(stall_timeout)
         self._core = core = SimCore(
             source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
