@@ -253,9 +253,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         return handle
 
     def _timer_handle_cancelled(self, handle: asyncio.TimerHandle) -> None:
-        # asyncio private hook: TimerHandle.cancel() reports a scheduled timer's cancellation
-        # here; the kernel counts them to purge its heap.
-        self._core.timer_cancelled()
+        # asyncio private hook: TimerHandle.cancel() reports a cancellation here (also of a
+        # timer that already fired: asyncio.sleep cancels its handle in a finally); the
+        # kernel counts the ones still in its heap, to purge them.
+        if handle._scheduled:  # type: ignore[attr-defined]
+            self._core.timer_cancelled()
 
     def _check_closed(self) -> None:
         if self._closed:
