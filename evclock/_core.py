@@ -60,6 +60,7 @@ _SLEEP: Final = 0  # payload: a future resolved when due (clock.sleep)
 _TIMER: Final = 1  # payload: an asyncio TimerHandle
 _MARK: Final = 2  # payload: None, a point where time stops (step_until / run_until)
 
+_Future = asyncio.Future
 # asyncio.sleep() schedules this function through call_later(); the kernel recognises it to
 # resolve the sleep's future exactly as the handle would (asyncio private, no public name).
 _SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
@@ -81,10 +82,6 @@ class CoreHost(Protocol):
     def could_wake(self) -> bool:
         """Could anything outside wake a task (registered I/O, signal handlers, threads,
         peers)? False with nothing scheduled is a deadlock."""
-        ...
-
-    def new_future(self) -> asyncio.Future[None]:
-        """A future for a sim-time wait; raises if waits are not possible now or here."""
         ...
 
     def interrupt_wait(self) -> None:
@@ -136,7 +133,9 @@ class SimCore:
         self._settled: list[tuple[int, int, asyncio.Future[None]]] = []
         self._seq = itertools.count().__next__
         self._cancelled_timers = 0
-        self._new_future = host.new_future
+        #: Creates the future of a sim-time wait, raising if waits are impossible now or here
+        #: (closed loop, stopped driver, wrong thread): set by the host.
+        self.future_factory: Callable[[], asyncio.Future[None]]
         self._anything_runnable = host.anything_runnable
 
     def _read_now(self) -> int:
@@ -146,7 +145,7 @@ class SimCore:
 
     def sleep_at(self, when_ns: int) -> asyncio.Future[None]:
         """A future resolved once sim time reaches ``when_ns`` (at least now)."""
-        fut = self._new_future()
+        fut = self.future_factory()
         now = self.now_ns
         if when_ns < now:
             when_ns = now
@@ -175,7 +174,7 @@ class SimCore:
     def wait_settled(self, when_ns: int) -> asyncio.Future[None]:
         """A future resolved at ``when_ns`` once the work due then has settled
         (:meth:`wake_settled`); time stops there exactly."""
-        fut = self._new_future()
+        fut = self.future_factory()
         heapq.heappush(self._settled, (when_ns, self._seq(), fut))
         if when_ns < self.notify_before:
             self.host.interrupt_wait()
@@ -272,8 +271,9 @@ class SimCore:
 
     def _wake_in_place(self, fut: asyncio.Future[Any], result: object) -> None:
         """Resolve ``fut`` and run its done-callbacks right here (no call_soon hop)."""
-        # A C future returns a fresh list; the pure-Python one its own (copied: we mutate).
-        callbacks = list(fut._callbacks)
+        callbacks = fut._callbacks
+        if type(fut) is not _Future:
+            callbacks = list(callbacks)  # the pure-Python future returns its own list
         for callback, _ctx in callbacks:
             fut.remove_done_callback(callback)
         fut.set_result(result)
@@ -350,10 +350,46 @@ class SimCore:
             return WAIT_SOURCE
         return DUE  # a step hook woke a task before time could move
 
-    def advance_unpaced(self, target: int) -> None:
-        """The hot path: move straight toward ``target`` when nothing else can matter
-        (the host checked: no pacing, no I/O, no outside work; ``target`` is live)."""
-        self.now_ns = self.source.advance(target, None)
+    def wake_next(self, ready: Any) -> bool:
+        """The hot path, when the host checked that nothing else can matter (no pacing, no
+        I/O, no outside work, nothing ready): advance straight to the next deadline and fire
+        what is due there. False if nothing is scheduled (the host applies :meth:`advance`).
+
+        Same order as :meth:`take_due` then :meth:`fire`; if the advance itself made work
+        ready (a step hook), the host runs it first.
+        """
+        heap = self._heap
+        while heap:
+            when, _, kind, obj = heap[0]
+            if kind == _SLEEP:
+                if not obj.done():
+                    break
+            elif kind == _TIMER:
+                if not obj._cancelled:
+                    break
+                obj._scheduled = False
+                self._cancelled_timers -= 1
+            else:
+                break
+            heapq.heappop(heap)
+        else:
+            return False
+        if when > self.now_ns:
+            self.now_ns = self.source.advance(when, None)
+            if ready:
+                return True
+        now = self.now_ns
+        if when > now:
+            return True  # a stepping source returns in chunks on long advances
+        entry = heapq.heappop(heap)
+        if kind == _SLEEP and (not heap or heap[0][0] > now):
+            self._wake_in_place(obj, None)  # alone and due: the common case
+            return True
+        due = [entry]
+        while heap and heap[0][0] <= now:
+            due.append(heapq.heappop(heap))
+        self.fire(due, ready)
+        return True
 
     # ------------------------------------------------ what time sources use
 

@@ -245,6 +245,7 @@ class SimDriver(PacingControls):
             )
         self._source = source
         self._core = SimCore(source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall)
+        self._core.future_factory = self._new_future
         if paused:
             self._core.pacer.pause()
         self._max_settle_yields = max_settle_yields
@@ -498,7 +499,7 @@ class SimDriver(PacingControls):
 
     # ------------------------------------------------ what the kernel asks the driver
 
-    def new_future(self) -> asyncio.Future[None]:
+    def _new_future(self) -> asyncio.Future[None]:
         """A future for a sim-time wait (every wait on this driver's clock starts here)."""
         loop = self._loop
         if self._state is not _RUNNING or asyncio.events._get_running_loop() is not loop:

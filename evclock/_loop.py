@@ -22,6 +22,7 @@ import collections
 import concurrent.futures
 import contextlib
 import contextvars
+import functools
 import math
 import selectors
 import threading
@@ -150,6 +151,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._core = core = SimCore(
             source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
         )
+        core.future_factory = functools.partial(_Future, loop=self)
         source.attach(core)  # may refuse (a source drives one host): before the selector too
         super().__init__(selector)
         self._source = source
@@ -259,6 +261,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if handle._scheduled:  # type: ignore[attr-defined]
             self._core.timer_cancelled()
 
+    def _refuse_wait(self) -> asyncio.Future[None]:
+        self._check_closed()
+        raise AssertionError("unreachable: the loop is closed")
+
     def _check_closed(self) -> None:
         if self._closed:
             raise LoopClosedError(
@@ -272,6 +278,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         ready = self._ready
         io_map = self._io_map
         core = self._core
+        wake_next = core.wake_next
         while True:
             if len(io_map) > 1:
                 self._poll_io(0)  # what arrives is handled at the current sim time
@@ -285,14 +292,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                     and not self._holds
                     and (len(_thread_registry) + len(_thread_limbo) <= 1 or self._only_daemons())
                 ):
-                    target = core.next_deadline()
-                    if target is None:
-                        self._advance()
-                    elif target > core.now_ns:
-                        self._held_since = None
-                        core.advance_unpaced(target)
-                else:
-                    self._advance()
+                    if self._held_since is not None:
+                        self._held_since = None  # nothing holds time any more
+                    if wake_next(ready):
+                        continue
+                self._advance()
             # Entries due now are taken before anything runs, so whatever the callbacks
             # below schedule for the same instant waits for the next iteration, as in asyncio.
             due = core.take_due()
@@ -367,12 +371,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def could_wake(self) -> bool:
         """Could anything outside wake a task with nothing scheduled? (registered I/O)"""
         return len(self._io_map) > 1
-
-    def new_future(self) -> asyncio.Future[None]:
-        """A future for a sim-time wait on this loop."""
-        if self._closed:
-            self._check_closed()
-        return _Future(loop=self)
 
     def interrupt_wait(self) -> None:
         """Nothing to do: the loop's waits are I/O waits, and whatever calls this runs in
@@ -512,6 +510,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def close(self) -> None:
         if self.is_closed():
             return
+        self._core.future_factory = self._refuse_wait
         try:
             super().close()
         finally:
