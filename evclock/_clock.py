@@ -205,23 +205,19 @@ class WallClock(Clock):
     (the default loop, uvloop, ...).
 
     Waits are precise by default (``precise=True``): the stock loop rounds its selector
-    timeout up to whole milliseconds (and Linux adds 50 us of timer slack), so a plain
-    ``asyncio.sleep`` based 1 kHz loop is about 0.55 ms late at the median. A precise wait
+    timeout up to whole milliseconds (and Linux adds timer slack), so a plain
+    ``asyncio.sleep`` based 1 kHz loop is about half a period late. A precise wait
     sleeps on the loop's own timer until 5 ms before the deadline, then, on Linux, on a
     ``timerfd`` armed at the absolute time ``deadline - spin_margin`` and watched by the
-    loop (``loop.add_reader``): no millisecond rounding and no timer slack, for about 1 %
-    of a core at 1 kHz. It finishes the last ``spin_margin`` by yielding to the loop
-    (``asyncio.sleep(0)``) until the clock reads the deadline: other tasks keep running,
-    but it costs CPU. A precise wait never returns before the clock reads the deadline.
-
-    Measured with ``benchmarks/wall_rate_1khz.py`` (1 kHz rate, 2-vCPU VM, idle), p99
-    lateness / CPU per wall second: plain ``asyncio.sleep`` 1.1 ms / 4-5 %; precise with
-    ``spin_margin=0`` 130 us / 6 %, 50 us: 100 us / 8 %, 100 us (default): 40 us / 12 %,
-    200 us: 5-20 us / 22 %. On bare metal the wake-up latency is lower and a smaller
-    margin suffices: measure and tune. Where there is no timerfd (other systems, loops
-    without ``add_reader``) the loop's timer is used, with its granularity; a margin above
-    it (1.2 ms on the default Linux loop) restores precision at the cost of spinning the
-    whole time (100 % of a core at 1 kHz). Works on uvloop too.
+    loop (``loop.add_reader``): no millisecond rounding and no timer slack. It finishes the
+    last ``spin_margin`` by yielding to the loop (``asyncio.sleep(0)``) until the clock
+    reads the deadline: other tasks keep running, but it costs CPU; a larger margin absorbs
+    more wake-up latency for more CPU (the README's "Precise wall time" shows measured
+    trade-offs, ``benchmarks/wall_rate_1khz.py`` measures them on your machine). A precise
+    wait never returns before the clock reads the deadline. Where there is no timerfd
+    (other systems, loops without ``add_reader``) the loop's timer is used, with its
+    granularity; a margin above it restores precision at the cost of spinning the whole
+    time. Works on uvloop too.
 
     Args:
         clock_type: ``STEADY`` or ``SYSTEM``. Relative sleeps (:meth:`sleep`) are always

@@ -49,7 +49,7 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
     Change it with :meth:`set_time_step`. With ``watch_time_step=True`` (default), a change
     made directly with ``p.setTimeStep``/``p.setPhysicsEngineParameter(fixedTimeStep=...)``
     is detected too: the time step is re-read before each advance of the loop (one
-    ``getPhysicsEngineParameters`` call per client, about 2 us), so a change made from a task
+    ``getPhysicsEngineParameters`` call per client), so a change made from a task
     takes effect from the next step. ``watch_time_step=False`` saves that call; then change
     the time step only through :meth:`set_time_step` (always required from inside a step hook).
 

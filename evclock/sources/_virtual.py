@@ -42,7 +42,12 @@ class VirtualTimeSource(TimeSource):
 
         Jump handlers run and pending sim-time sleeps are woken with :class:`ClockJumped`.
         """
-        if type(new_ns) is not int or not 0 <= new_ns <= MAX_TIME_NS:
+        if whole_number(new_ns) is None:
+            raise InvalidTypeError(
+                f"set_time() needs an int number of nanoseconds, got {type(new_ns).__name__}"
+            )
+        new_ns = int(new_ns)
+        if not 0 <= new_ns <= MAX_TIME_NS:
             raise InvalidArgumentError(
                 f"set_time() needs a non-negative int of nanoseconds, got {new_ns!r}"
             )
