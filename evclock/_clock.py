@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING
 
 from . import _precise
 from ._config import env_use_sim_time
+from ._core import clock_sleep
 from ._errors import (
     ClockMismatchError,
     InvalidArgumentError,
@@ -21,18 +22,20 @@ from ._errors import (
 from ._jumps import JumpCallback, JumpHandle, JumpThreshold
 from ._loop import SimEventLoop
 from ._rate import Policy, Rate, Timer, TimerCallback
-from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds, to_span_ns
+from ._time import (
+    SIM,
+    STEADY,
+    SYSTEM,
+    ClockType,
+    Duration,
+    Time,
+    sleep_duration_ns,
+    to_nanoseconds,
+)
 
 if TYPE_CHECKING:
     from ._core import SimCore
     from ._pacing import PacingControls
-
-_NEGATIVE_HINT = "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
-
-
-def _sleep_ns(duration: object) -> int:
-    """A sleep duration in nanoseconds (validated; the fast cases are inlined by callers)."""
-    return to_span_ns(duration, "sleep duration", _NEGATIVE_HINT)
 
 
 class Clock(abc.ABC):
@@ -178,15 +181,7 @@ class SimClock(Clock):
     def now(self) -> Time:
         return Time._from_ns(self._core.now_ns, SIM)
 
-    def sleep(self, duration: float | Duration) -> asyncio.Future[None]:
-        # The hot path of every controller: keep it flat.
-        if type(duration) is float and 0.0 <= duration < 1e9:
-            ns = round(duration * 1e9)
-        elif type(duration) is Duration and duration._ns >= 0:
-            ns = duration._ns
-        else:
-            ns = _sleep_ns(duration)
-        return self._sleep_at(self._core.now_ns + ns)
+    sleep = clock_sleep  # the kernel's: every controller's hot path, in one frame
 
     def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
         return self._sleep_at(when_ns)
@@ -284,7 +279,7 @@ class WallClock(Clock):
         return self._read()
 
     async def sleep(self, duration: float | Duration) -> None:
-        ns = _sleep_ns(duration)
+        ns = sleep_duration_ns(duration)
         if not self._precise:
             await asyncio.sleep(ns / 1e9)
             return

@@ -40,7 +40,14 @@ from typing import TYPE_CHECKING, Any, Final, Protocol
 from ._errors import ClockJumped, InvalidArgumentError
 from ._jumps import JumpHandle, TimeJump
 from ._pacing import DEFAULT_MAX_LAG, Pacer
-from ._time import MAX_TIME_NS, SIM, Time, format_time_range_error
+from ._time import (
+    MAX_TIME_NS,
+    SIM,
+    Duration,
+    Time,
+    format_time_range_error,
+    sleep_duration_ns,
+)
 from .sources import TimeSource
 
 if TYPE_CHECKING:
@@ -66,6 +73,30 @@ _Future = asyncio.Future
 _SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
 #: Purge cancelled timers from the heap once they are this many and half of it.
 _PURGE_AT: Final = 64
+
+
+def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[None]:
+    """Wait ``duration`` (seconds or a :class:`Duration`) of sim time: ``SimClock.sleep``.
+
+    Every controller's hot path, so it lives here, in one frame: it converts the duration
+    and pushes the wait on the kernel's heap. Negative, NaN and infinite durations raise
+    :class:`InvalidArgumentError`, as does a wait beyond sim time's range.
+    """
+    if type(duration) is float and 0.0 <= duration < 1e9:
+        ns = round(duration * 1e9)
+    elif type(duration) is Duration and duration._ns >= 0:
+        ns = duration._ns
+    else:
+        ns = sleep_duration_ns(duration)
+    core = clock._core
+    when = core.now_ns + ns
+    if when > MAX_TIME_NS:
+        raise InvalidArgumentError(format_time_range_error("the wait", when))
+    fut = core.future_factory()
+    heapq.heappush(core._heap, (when, core._seq(), _SLEEP, fut))
+    if when < core.notify_before:
+        core.host.interrupt_wait()
+    return fut
 
 
 class CoreHost(Protocol):
@@ -156,10 +187,11 @@ class SimCore:
             self.host.interrupt_wait()
         return fut
 
-    def call_at(self, when_ns: int, timer: asyncio.TimerHandle) -> None:
-        """Schedule an asyncio timer at ``when_ns`` (beyond the time range: never)."""
+    def call_at(self, when_ns: int, timer: Any) -> None:
+        """Schedule an asyncio ``TimerHandle`` at ``when_ns`` (beyond the time range: never)."""
         if when_ns <= MAX_TIME_NS:
             heapq.heappush(self._heap, (when_ns, self._seq(), _TIMER, timer))
+            timer._scheduled = True
 
     def timer_cancelled(self) -> None:
         """A scheduled timer was cancelled (it stays in the heap until purged)."""
@@ -283,12 +315,12 @@ class SimCore:
             except (SystemExit, KeyboardInterrupt):
                 raise
             except BaseException as exc:
-                self.host.call_exception_handler(
-                    {
-                        "message": "Exception in a wake-up callback of a sim-time wait",
-                        "exception": exc,
-                    }
-                )
+                self._report_wakeup_error(exc)
+
+    def _report_wakeup_error(self, exc: BaseException) -> None:
+        self.host.call_exception_handler(
+            {"message": "Exception in a wake-up callback of a sim-time wait", "exception": exc}
+        )
 
     def wake_due(self) -> bool:
         """Resolve every sleep due now through its future (hosts on a foreign loop)."""
@@ -382,9 +414,29 @@ class SimCore:
         if when > now:
             return True  # a stepping source returns in chunks on long advances
         entry = heapq.heappop(heap)
-        if kind == _SLEEP and (not heap or heap[0][0] > now):
-            self._wake_in_place(obj, None)  # alone and due: the common case
-            return True
+        if not heap or heap[0][0] > now:  # alone and due: the common case
+            if kind == _SLEEP:
+                fut, result = obj, None
+            elif kind == _TIMER and obj._callback is _SET_RESULT_UNLESS_CANCELLED:
+                obj._scheduled = False
+                fut, result = obj._args  # asyncio.sleep's future
+            else:
+                fut = None
+            if fut is not None and not fut.done():
+                callbacks = fut._callbacks
+                if len(callbacks) == 1 and type(fut) is _Future:  # one task waits: inline
+                    callback, ctx = callbacks[0]
+                    fut.remove_done_callback(callback)
+                    fut.set_result(result)
+                    try:
+                        ctx.run(callback, fut)
+                    except (SystemExit, KeyboardInterrupt):
+                        raise
+                    except BaseException as exc:
+                        self._report_wakeup_error(exc)
+                else:
+                    self._wake_in_place(fut, result)
+                return True
         due = [entry]
         while heap and heap[0][0] <= now:
             due.append(heapq.heappop(heap))

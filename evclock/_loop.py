@@ -24,6 +24,7 @@ import contextlib
 import contextvars
 import functools
 import math
+import operator
 import selectors
 import threading
 import time
@@ -54,6 +55,7 @@ _T = TypeVar("_T")
 _Ts = TypeVarTuple("_Ts")
 
 _Future = asyncio.Future
+_read_debug = operator.attrgetter("_debug")
 # Read on every advance: threading.active_count() would take a lock each time.
 _thread_registry: dict[int, threading.Thread] = threading._active  # type: ignore[attr-defined]
 _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # type: ignore[attr-defined]
@@ -154,6 +156,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         core.future_factory = functools.partial(_Future, loop=self)
         source.attach(core)  # may refuse (a source drives one host): before the selector too
         super().__init__(selector)
+        # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
+        # every callback: answer from C, without a Python frame (set_debug() sets _debug).
+        self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
         self._source = source
         # Registered file descriptors, read on every iteration: the selector's own dict when
         # it exposes one (all stdlib selectors do), else its public mapping view. The
@@ -241,16 +246,15 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         args: tuple[Any, ...],
         context: Any,
     ) -> asyncio.TimerHandle:
-        self._check_closed()
+        if self._closed:
+            self._check_closed()
+        timer: Any = events.TimerHandle(when, callback, args, self, context)
         if self._debug:
             self._check_thread()
             self._check_callback(callback, "call_at")
-        timer: Any = events.TimerHandle(when, callback, args, self, context)
-        if timer._source_traceback:
-            del timer._source_traceback[-1]
-        if when_ns <= MAX_TIME_NS:
-            self._core.call_at(when_ns, timer)
-            timer._scheduled = True
+            if timer._source_traceback:
+                del timer._source_traceback[-1]
+        self._core.call_at(when_ns, timer)
         handle: asyncio.TimerHandle = timer
         return handle
 

@@ -211,6 +211,16 @@ def to_span_ns(value: object, what: str, hint: str = "") -> int:
     return ns
 
 
+_NEGATIVE_SLEEP_HINT: Final = (
+    "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
+)
+
+
+def sleep_duration_ns(duration: object) -> int:
+    """A sleep duration (seconds or a Duration, not negative) in integer nanoseconds."""
+    return to_span_ns(duration, "sleep duration", _NEGATIVE_SLEEP_HINT)
+
+
 def real_number(value: object) -> float | None:
     """``value`` as a float if it is a real number (not ``bool``; numpy scalars and
     ``Fraction`` included), else None: for callers that word their own errors."""
