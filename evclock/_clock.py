@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING
 
 from . import _precise
 from ._config import env_use_sim_time
-from ._core import clock_sleep
+from ._core import clock_sleep, clock_sleep_until
 from ._errors import (
     ClockMismatchError,
     InvalidArgumentError,
@@ -160,7 +160,6 @@ class SimClock(Clock):
         super().__init__()
         self._core = core
         self._host = host
-        self._sleep_at = core.sleep_at
 
     @property
     def host(self) -> PacingControls:
@@ -183,8 +182,7 @@ class SimClock(Clock):
 
     sleep = clock_sleep  # the kernel's: every controller's hot path, in one frame
 
-    def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
-        return self._sleep_at(when_ns)
+    _sleep_until_ns = clock_sleep_until  # the kernel's: rates' and timers' hot path
 
     def _jump_registry(self) -> list[JumpHandle]:
         return self._core.jump_handlers

@@ -99,6 +99,22 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
     return fut
 
 
+def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
+    """Wait until sim time reaches ``when_ns`` (at least now): ``SimClock._sleep_until_ns``,
+    the hot path of rates and timers."""
+    core = clock._core
+    now = core.now_ns
+    if when_ns < now:
+        when_ns = now
+    elif when_ns > MAX_TIME_NS:
+        raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
+    fut = core.future_factory()
+    heapq.heappush(core._heap, (when_ns, core._seq(), _SLEEP, fut))
+    if when_ns < core.notify_before:
+        core.host.interrupt_wait()
+    return fut
+
+
 class CoreHost(Protocol):
     """What the kernel asks of the host it runs in (a SimEventLoop or a SimDriver)."""
 
@@ -173,19 +189,6 @@ class SimCore:
         return self.now_ns
 
     # ------------------------------------------------------------ scheduling
-
-    def sleep_at(self, when_ns: int) -> asyncio.Future[None]:
-        """A future resolved once sim time reaches ``when_ns`` (at least now)."""
-        fut = self.future_factory()
-        now = self.now_ns
-        if when_ns < now:
-            when_ns = now
-        elif when_ns > MAX_TIME_NS:
-            raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
-        heapq.heappush(self._heap, (when_ns, self._seq(), _SLEEP, fut))
-        if when_ns < self.notify_before:
-            self.host.interrupt_wait()
-        return fut
 
     def call_at(self, when_ns: int, timer: Any) -> None:
         """Schedule an asyncio ``TimerHandle`` at ``when_ns`` (beyond the time range: never)."""
