@@ -92,7 +92,8 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
     when = core.now_ns + ns
     if when > MAX_TIME_NS:
         raise InvalidArgumentError(format_time_range_error("the wait", when))
-    fut = core.future_factory()
+    loop = core.future_loop
+    fut = _Future(loop=loop) if loop is not None else core.future_factory()
     heapq.heappush(core._heap, (when, core._seq(), _SLEEP, fut))
     if when < core.notify_before:
         core.host.interrupt_wait()
@@ -108,7 +109,8 @@ def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
         when_ns = now
     elif when_ns > MAX_TIME_NS:
         raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
-    fut = core.future_factory()
+    loop = core.future_loop
+    fut = _Future(loop=loop) if loop is not None else core.future_factory()
     heapq.heappush(core._heap, (when_ns, core._seq(), _SLEEP, fut))
     if when_ns < core.notify_before:
         core.host.interrupt_wait()
@@ -183,6 +185,9 @@ class SimCore:
         #: Creates the future of a sim-time wait, raising if waits are impossible now or here
         #: (closed loop, stopped driver, wrong thread): set by the host.
         self.future_factory: Callable[[], asyncio.Future[None]]
+        #: Or, faster, the loop a plain future is created on when waits are possible there
+        #: with no further check (an open SimEventLoop); None: use ``future_factory``.
+        self.future_loop: asyncio.AbstractEventLoop | None = None
         self._anything_runnable = host.anything_runnable
 
     def _read_now(self) -> int:

@@ -153,13 +153,14 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._core = core = SimCore(
             source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
         )
-        core.future_factory = functools.partial(_Future, loop=self)
+        core.future_factory = self._refuse_wait
         source.attach(core)  # may refuse (a source drives one host): before the selector too
         super().__init__(selector)
         # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
         # every callback: answer from C, without a Python frame (set_debug() sets _debug).
         self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
         self._source = source
+        core.future_loop = self  # waits are possible from now until close()
         # Registered file descriptors, read on every iteration: the selector's own dict when
         # it exposes one (all stdlib selectors do), else its public mapping view. The
         # self-pipe is always registered, so "real I/O" means more than one entry.
@@ -284,15 +285,16 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         core = self._core
         wake_next = core.wake_next
         while True:
-            if len(io_map) > 1:
+            io_registered = len(io_map) > 1
+            if io_registered:
                 self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
                 # The short path when nothing else can matter (no pacing, no I/O, no outside
-                # work, no other thread, not an external source): straight toward the next
-                # deadline. Otherwise the full rule.
+                # work, no other thread, not an external source): straight to the next
+                # deadline and what is due there. Otherwise the full rule.
                 if (
                     self._fast_path
-                    and len(io_map) <= 1
+                    and not io_registered
                     and not self._holds
                     and (len(_thread_registry) + len(_thread_limbo) <= 1 or self._only_daemons())
                 ):
@@ -514,7 +516,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def close(self) -> None:
         if self.is_closed():
             return
-        self._core.future_factory = self._refuse_wait
+        self._core.future_loop = None  # waits now go to future_factory, which refuses them
         try:
             super().close()
         finally:
