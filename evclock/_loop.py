@@ -41,7 +41,6 @@ from ._errors import (
     NotRunningError,
     StallError,
 )
-from ._jumps import JumpHandle
 from ._pacing import DEFAULT_MAX_LAG, PacingControls
 from ._tasks import describe_tasks
 from ._threads import busy_threads, could_call_back
@@ -200,10 +199,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
             clock = self._sim_clock = SimClock(self._core, self)
         return clock
-
-    @property
-    def _jump_handlers(self) -> list[JumpHandle]:
-        return self._core.jump_handlers
 
     # ------------------------------------------------------------ scheduling
 
