@@ -189,3 +189,27 @@ def test_a_rejected_loop_prints_nothing(arguments: str) -> None:
     )
     assert done.stderr == ""
     assert done.stdout in ("InvalidArgumentError\n", "InvalidTypeError\n", "TypeError\n")
+
+
+def test_clock_sleep_goes_wherever_a_future_does() -> None:
+    async def main() -> list[float]:
+        clock = evclock.clock()
+        loop = asyncio.get_running_loop()
+        seen = []
+        await asyncio.gather(clock.sleep(1), clock.sleep(2))
+        seen.append(loop.time())
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(clock.sleep(10), 1)
+        seen.append(loop.time())
+        await asyncio.ensure_future(clock.sleep(1))
+        seen.append(loop.time())
+
+        async def pause() -> None:  # create_task takes coroutines: wrap it
+            await clock.sleep(1)
+
+        async with asyncio.TaskGroup() as group:
+            group.create_task(pause())
+        seen.append(loop.time())
+        return seen
+
+    assert evclock.run(main()) == [2.0, 3.0, 4.0, 5.0]
