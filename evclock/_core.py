@@ -155,7 +155,8 @@ class SimCore:
 
     Time sources talk to the kernel through :class:`~evclock.sources.SourceHost`, which this
     class implements: :attr:`now_ns`, :meth:`stepped_to`, :meth:`work_ready`, :meth:`jump`,
-    :meth:`serves`, :attr:`clock`, :meth:`is_closed` and :meth:`call_exception_handler`.
+    :meth:`serves`, :meth:`time_arrived`, :attr:`clock`, :meth:`is_closed` and
+    :meth:`call_exception_handler`.
     """
 
     def __init__(
