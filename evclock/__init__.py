@@ -56,7 +56,13 @@ from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
 from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
 from ._trace import Divergence, Trace, TraceMessage, first_divergence, read_trace
 from .ros2 import Ros2ClockPublisher, Ros2ClockSource
-from .sources import PyBulletTimeSource, StepHook, TimeSource, VirtualTimeSource
+from .sources import (
+    PyBulletTimeSource,
+    StepHook,
+    SteppingTimeSource,
+    TimeSource,
+    VirtualTimeSource,
+)
 
 if TYPE_CHECKING:
     from ._buffer import Interpolation, TimeBuffer
@@ -124,6 +130,7 @@ __all__ = [
     "StampWarning",
     "Stamped",
     "StepHook",
+    "SteppingTimeSource",
     "StreamAgeStats",
     "SweepResult",
     "SweepRow",

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import abc
 import asyncio
-import asyncio.futures
 import time
 import weakref
 from collections.abc import Awaitable
-from heapq import heappush
+from typing import TYPE_CHECKING
 
 from . import _precise
 from ._config import env_use_sim_time
+from ._core import clock_sleep, clock_sleep_until
 from ._errors import (
     ClockMismatchError,
     InvalidArgumentError,
@@ -22,28 +22,20 @@ from ._errors import (
 from ._jumps import JumpCallback, JumpHandle, JumpThreshold
 from ._loop import SimEventLoop
 from ._rate import Policy, Rate, Timer, TimerCallback
-from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds
+from ._time import (
+    SIM,
+    STEADY,
+    SYSTEM,
+    ClockType,
+    Duration,
+    Time,
+    sleep_duration_ns,
+    to_nanoseconds,
+)
 
-_Future = asyncio.futures.Future
-_NEGATIVE_HINT = "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
-
-
-def _sleep_ns(duration: object) -> int:
-    """Fast validated conversion of a sleep duration to nanoseconds."""
-    if type(duration) is float:
-        if duration == duration and duration not in (float("inf"), float("-inf")):
-            ns = round(duration * 1e9)
-        else:
-            ns = to_nanoseconds(duration, "sleep duration")
-    elif type(duration) is Duration:
-        ns = duration.nanoseconds
-    else:
-        ns = to_nanoseconds(duration, "sleep duration")
-    if ns < 0:
-        raise InvalidArgumentError(
-            f"sleep duration must not be negative, got {duration!r}; {_NEGATIVE_HINT}"
-        )
-    return ns
+if TYPE_CHECKING:
+    from ._core import SimCore
+    from ._pacing import PacingControls
 
 
 class Clock(abc.ABC):
@@ -155,57 +147,48 @@ class Clock(abc.ABC):
 
 
 class SimClock(Clock):
-    """The clock of a :class:`SimEventLoop`: simulation time, exact integer nanoseconds."""
+    """Simulation time, exact integer nanoseconds: the clock of a :class:`SimEventLoop`, or of
+    a :class:`~evclock.SimDriver` on a loop evclock does not own.
+
+    Its waits must be awaited on :attr:`loop`; :attr:`host` is what controls its time
+    (``pause()``, ``resume()``, ``step()``, ``rtf``).
+    """
 
     clock_type = SIM
 
-    def __init__(self, loop: SimEventLoop) -> None:
+    def __init__(self, core: SimCore, host: PacingControls) -> None:
         super().__init__()
-        self._loop = loop
+        self._core = core
+        self._host = host
 
     @property
-    def loop(self) -> SimEventLoop:
-        """The simulation loop this clock reads."""
-        return self._loop
+    def host(self) -> PacingControls:
+        """What owns this sim time: the :class:`SimEventLoop` or the ``SimDriver``."""
+        return self._host
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop this clock's waits run on (the SimEventLoop itself, or the loop a
+        SimDriver runs on)."""
+        host = self._host
+        assert isinstance(host, SimEventLoop)
+        return host
 
     def now_ns(self) -> int:
-        return self._loop._now_ns
+        return self._core.now_ns
 
     def now(self) -> Time:
-        return Time._from_ns(self._loop._now_ns, SIM)
+        return Time._from_ns(self._core.now_ns, SIM)
 
-    def sleep(self, duration: float | Duration) -> asyncio.Future[None]:
-        # The hot path of every controller: keep it flat.
-        if type(duration) is float and 0.0 <= duration < 1e9:
-            ns = round(duration * 1e9)
-        elif type(duration) is Duration:
-            ns = duration._ns
-            if ns < 0:
-                ns = _sleep_ns(duration)
-        else:
-            ns = _sleep_ns(duration)
-        # Same as _sleep_until_ns(now + ns), inlined: this is every controller's hot path.
-        loop = self._loop
-        if loop._closed:
-            loop._check_closed()
-        fut: asyncio.Future[None] = _Future(loop=loop)
-        heappush(loop._scheduled, (loop._now_ns + ns, loop._seq(), 0, fut))
-        return fut
+    sleep = clock_sleep  # the kernel's: every controller's hot path, in one frame
 
-    def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
-        loop = self._loop
-        if loop._closed:
-            loop._check_closed()
-        fut: asyncio.Future[None] = _Future(loop=loop)
-        now = loop._now_ns
-        heappush(loop._scheduled, (when_ns if when_ns > now else now, loop._seq(), 0, fut))
-        return fut
+    _sleep_until_ns = clock_sleep_until  # the kernel's: rates' and timers' hot path
 
     def _jump_registry(self) -> list[JumpHandle]:
-        return self._loop._jump_handlers
+        return self._core.jump_handlers
 
     def __repr__(self) -> str:
-        return f"<SimClock now={self.now()} source={self._loop.source.describe()}>"
+        return f"<SimClock now={self.now()} source={self._core.source.describe()}>"
 
 
 class WallClock(Clock):
@@ -215,23 +198,19 @@ class WallClock(Clock):
     (the default loop, uvloop, ...).
 
     Waits are precise by default (``precise=True``): the stock loop rounds its selector
-    timeout up to whole milliseconds (and Linux adds 50 us of timer slack), so a plain
-    ``asyncio.sleep`` based 1 kHz loop is about 0.55 ms late at the median. A precise wait
+    timeout up to whole milliseconds (and Linux adds timer slack), so a plain
+    ``asyncio.sleep`` based 1 kHz loop is about half a period late. A precise wait
     sleeps on the loop's own timer until 5 ms before the deadline, then, on Linux, on a
     ``timerfd`` armed at the absolute time ``deadline - spin_margin`` and watched by the
-    loop (``loop.add_reader``): no millisecond rounding and no timer slack, for about 1 %
-    of a core at 1 kHz. It finishes the last ``spin_margin`` by yielding to the loop
-    (``asyncio.sleep(0)``) until the clock reads the deadline: other tasks keep running,
-    but it costs CPU. A precise wait never returns before the clock reads the deadline.
-
-    Measured with ``benchmarks/wall_rate_1khz.py`` (1 kHz rate, 2-vCPU VM, idle), p99
-    lateness / CPU per wall second: plain ``asyncio.sleep`` 1.1 ms / 4-5 %; precise with
-    ``spin_margin=0`` 130 us / 6 %, 50 us: 100 us / 8 %, 100 us (default): 40 us / 12 %,
-    200 us: 5-20 us / 22 %. On bare metal the wake-up latency is lower and a smaller
-    margin suffices: measure and tune. Where there is no timerfd (other systems, loops
-    without ``add_reader``) the loop's timer is used, with its granularity; a margin above
-    it (1.2 ms on the default Linux loop) restores precision at the cost of spinning the
-    whole time (100 % of a core at 1 kHz). Works on uvloop too.
+    loop (``loop.add_reader``): no millisecond rounding and no timer slack. It finishes the
+    last ``spin_margin`` by yielding to the loop (``asyncio.sleep(0)``) until the clock
+    reads the deadline: other tasks keep running, but it costs CPU; a larger margin absorbs
+    more wake-up latency for more CPU (the README's "Precise wall time" shows measured
+    trade-offs, ``benchmarks/wall_rate_1khz.py`` measures them on your machine). A precise
+    wait never returns before the clock reads the deadline. Where there is no timerfd
+    (other systems, loops without ``add_reader``) the loop's timer is used, with its
+    granularity; a margin above it restores precision at the cost of spinning the whole
+    time. Works on uvloop too.
 
     Args:
         clock_type: ``STEADY`` or ``SYSTEM``. Relative sleeps (:meth:`sleep`) are always
@@ -298,7 +277,7 @@ class WallClock(Clock):
         return self._read()
 
     async def sleep(self, duration: float | Duration) -> None:
-        ns = _sleep_ns(duration)
+        ns = sleep_duration_ns(duration)
         if not self._precise:
             await asyncio.sleep(ns / 1e9)
             return

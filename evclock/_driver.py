@@ -16,10 +16,10 @@ The driver repeats one cycle:
    paced by :class:`~evclock._pacing.Pacer`; a pacing wait is an ``asyncio`` wait on the
    host loop, so I/O keeps flowing.
 
-A time source is attached to the driver as it is to a SimEventLoop: the driver implements
-:class:`~evclock.sources.SourceHost` (``now_ns``/``_now_ns``, ``_ready`` - truthy once a task
-became runnable -, ``_jump_time()``, ``_runs_on()``, ``is_closed()``,
-``call_exception_handler()`` and ``clock``).
+The driver is a host of the simulation kernel (:class:`~evclock._core.SimCore`), like
+:class:`SimEventLoop`: the kernel holds the deadlines, the source, pacing and jumps, and
+decides each advance; the driver supplies how to wait (``asyncio`` waits on the host loop)
+and whether anything else is runnable.
 
 Settling is how lockstep is approximated on a loop we cannot drive. On loops built on
 ``asyncio.BaseEventLoop`` the driver reads the loop's ready queue: it is settled when nothing
@@ -35,36 +35,26 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
-import heapq
-import itertools
-import math
 import time
 from collections.abc import Callable, Iterator
 from types import TracebackType
-from typing import TYPE_CHECKING, Any, Final, TypeVar
+from typing import Any, Final
 
 from . import _clock
-from ._clock import Clock, SimClock, _sleep_ns, attach_clock, detach_clock
+from ._clock import Clock, SimClock, attach_clock, detach_clock
+from ._core import DUE, HELD, MOVED, PACING, WAIT_SOURCE, SimCore
 from ._errors import (
     ClockJumped,
-    ClockMismatchError,
     InvalidArgumentError,
     InvalidTypeError,
     LoopClosedError,
     NotRunningError,
     SimDriverError,
 )
-from ._jumps import JumpHandle, TimeJump
 from ._loop import SimEventLoop
-from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
-from ._time import SIM, Duration, Time, to_nonnegative_nanoseconds
+from ._pacing import DEFAULT_MAX_LAG, PacingControls
+from ._time import MAX_TIME_NS, SIM, Duration, Time, to_sim_time_ns
 from .sources import TimeSource, VirtualTimeSource
-
-if TYPE_CHECKING:
-    _Entry = tuple[int, int, asyncio.Future[None] | None]
-
-#: A wait's future, or None for a bare stop mark (step_until's target).
-_MaybeFuture = TypeVar("_MaybeFuture", asyncio.Future[None], asyncio.Future[None] | None)
 
 #: Default bound of loop iterations the driver yields, after waking the tasks due at one sim
 #: time, for that work to settle before it advances sim time anyway.
@@ -73,20 +63,21 @@ DEFAULT_MAX_SETTLE_YIELDS: Final = 100
 _QUIET_CHECKS_BY_TASKS: Final = 3
 _NEW, _RUNNING, _STOPPED = "new", "running", "stopped"
 _UNKNOWN: Final[Any] = object()
+#: ``notify_before`` while the driver waits for nothing in particular: any new deadline counts.
+_ANY_DEADLINE: Final = MAX_TIME_NS + 1
+#: While an external source waits for the outside, ask it again this often (wall seconds).
+_EXTERNAL_POLL: Final = 0.05
 
 
 class SimDriverClock(SimClock):
     """The sim clock of a :class:`SimDriver`: what :func:`evclock.clock` and
     :func:`evclock.sim_clock` return on the loop the driver runs on.
 
-    A :class:`SimClock` (``clock_type`` is ``SIM``) with the same API; its waits must be
-    awaited on the driver's loop while the driver runs.
+    A :class:`SimClock` whose waits must be awaited on the driver's loop while it runs.
     """
 
-    clock_type = SIM
-
     def __init__(self, driver: SimDriver) -> None:
-        Clock.__init__(self)
+        super().__init__(driver._core, driver)
         self._driver = driver
 
     @property
@@ -95,35 +86,15 @@ class SimDriverClock(SimClock):
         return self._driver
 
     @property
-    def loop(self) -> SimEventLoop:
-        """Not available: this clock is driven by a :class:`SimDriver`, not a SimEventLoop."""
-        raise SimDriverError(
-            "this sim clock belongs to a SimDriver on a loop evclock does not own, not to a "
-            "SimEventLoop; use clock.driver for pause(), step() and rtf"
-        )
-
-    def now_ns(self) -> int:
-        return self._driver._now_ns
-
-    def now(self) -> Time:
-        return Time._from_ns(self._driver._now_ns, SIM)
-
-    def sleep(self, duration: float | Duration) -> asyncio.Future[None]:
-        if type(duration) is float and 0.0 <= duration < 1e9:
-            ns = round(duration * 1e9)
-        elif type(duration) is Duration and duration._ns >= 0:
-            ns = duration._ns
-        else:
-            ns = _sleep_ns(duration)
-        driver = self._driver
-        return driver._push_sleep(driver._now_ns + ns)
-
-    def _sleep_until_ns(self, when_ns: int) -> asyncio.Future[None]:
-        driver = self._driver
-        return driver._push_sleep(max(when_ns, driver._now_ns))
-
-    def _jump_registry(self) -> list[JumpHandle]:
-        return self._driver._jump_handlers
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop the driver runs (or ran) on."""
+        loop = self._driver.loop
+        if loop is None:
+            raise NotRunningError(
+                "this SimDriver has not started yet, so its clock has no event loop; start it "
+                "first (async with evclock.SimDriver() as sim: ...)"
+            )
+        return loop
 
     def __repr__(self) -> str:
         return f"<SimDriverClock now={self.now()} source={self._driver.source.describe()}>"
@@ -262,13 +233,6 @@ class SimDriver(PacingControls):
                 f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
                 f"got {type(source).__name__}"
             )
-        elif source.external:  # external-source contract: not hosted by the driver yet
-            raise SimDriverError(
-                f"{source.describe()} follows an outside clock, which SimDriver cannot host "
-                "yet; run the program with evclock.run(main(), source=...) instead"
-            )
-        check_rtf(rtf)
-        check_max_lag(max_lag)
         if isinstance(max_settle_yields, bool) or not isinstance(max_settle_yields, int):
             raise InvalidTypeError(
                 f"max_settle_yields must be an int, got {type(max_settle_yields).__name__}"
@@ -280,30 +244,20 @@ class SimDriver(PacingControls):
                 f"wall must be a callable returning seconds, got {type(wall).__name__}"
             )
         self._source = source
-        self._now_ns: int = source.now_ns
-        self._pacer = Pacer(
-            self._pacer_wait, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
-        )
+        self._core = SimCore(source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall)
+        self._core.future_factory = self._new_future
         if paused:
-            self._pacer.pause()
+            self._core.pacer.pause()
         self._max_settle_yields = max_settle_yields
-        self._heap: list[_Entry] = []
-        # run_until() waits: woken after the work due at their time has settled.
-        self._late: list[tuple[int, int, asyncio.Future[None]]] = []
-        self._compact_at = 64
-        self._seq = itertools.count().__next__
-        self._jump_handlers: list[JumpHandle] = []
         self._clock = SimDriverClock(self)
         self._state = _NEW
         self._loop: asyncio.AbstractEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
-        self._poke_fut: asyncio.Future[None] | None = None
-        self._wait_target: float = math.inf
-        self._pace_waiting = False
-        self._pace_timeout: float | None = None
+        self._wakeup: asyncio.Future[None] | None = None
         self._ready_queue: collections.deque[Any] | None = None
         self._probe = _WakeProbe(self)
+        self._overran = False
         self._holds = 0
         self._draining = False
         self._step_until_ns: int | None = None
@@ -332,14 +286,11 @@ class SimDriver(PacingControls):
     @property
     def now_ns(self) -> int:
         """Sim time in integer nanoseconds."""
-        return self._now_ns
-
-    def _get_now_ns(self) -> int:
-        return self._now_ns
+        return self._core.now_ns
 
     def now(self) -> Time:
         """Current sim time."""
-        return Time._from_ns(self._now_ns, SIM)
+        return Time._from_ns(self._core.now_ns, SIM)
 
     @property
     def running(self) -> bool:
@@ -353,8 +304,9 @@ class SimDriver(PacingControls):
         return self._lockstep_overruns
 
     def __repr__(self) -> str:
-        rtf = "None" if self._pacer.rtf is None else f"{self._pacer.rtf:g}"
-        paused = " paused" if self._pacer.paused else ""
+        pacer = self._core.pacer
+        rtf = "None" if pacer.rtf is None else f"{pacer.rtf:g}"
+        paused = " paused" if pacer.paused else ""
         return (
             f"<SimDriver {self._state}{paused} now={self.now()} rtf={rtf} "
             f"source={self._source.describe()}>"
@@ -403,9 +355,8 @@ class SimDriver(PacingControls):
                 "(one sim clock per loop)"
             )
         source = self._source
-        now = source.now_ns
-        source.attach(self)  # a SimDriver is the source's host (SourceHost)
-        self._now_ns = now
+        source.attach(self._core)  # the driver's kernel is the source's host
+        self._core.now_ns = source.now_ns  # the source may have moved since (a former driver)
         self._loop = loop
         ready = getattr(loop, "_ready", None)
         self._ready_queue = ready if isinstance(ready, collections.deque) else None
@@ -436,7 +387,7 @@ class SimDriver(PacingControls):
         if not task.done():
             self._stopping = True
             self._draining = True  # waits started while stopping are cancelled at once
-            self._poke()
+            self._wake_driver()
             try:
                 await asyncio.wait((task,))
                 await self._settle(stop_early=False)
@@ -466,15 +417,12 @@ class SimDriver(PacingControls):
             raise LoopClosedError(self._stopped_message())
         if self._state is _NEW:
             self.start()
-        while self._now_ns < when_ns:
-            if self._pacer.paused:
+        core = self._core
+        while core.now_ns < when_ns:
+            if core.pacer.paused:
                 self._extend_step_until(when_ns)
             self._check_can_wait()
-            assert self._loop is not None
-            fut: asyncio.Future[None] = self._loop.create_future()
-            heapq.heappush(self._late, (when_ns, self._seq(), fut))
-            if when_ns < self._wait_target:
-                self._poke()
+            fut = core.wait_settled(when_ns)
             try:
                 await fut
             except ClockJumped:
@@ -486,18 +434,12 @@ class SimDriver(PacingControls):
 
     @staticmethod
     def _target_ns(when: object) -> int:
-        if isinstance(when, Time):
-            if when.clock_type is not SIM:
-                raise ClockMismatchError(
-                    f"run_until() needs a sim time or seconds, got a {when.clock_type.value} time"
-                )
-            return when.nanoseconds
         if isinstance(when, Duration):
             raise InvalidTypeError(
                 "run_until() needs a sim Time or seconds since the sim epoch, got Duration; "
                 "to run for a duration use run_until(sim.now() + duration)"
             )
-        return to_nonnegative_nanoseconds(when, "run_until() time")
+        return to_sim_time_ns(when, "run_until() time")
 
     def _stopped_message(self) -> str:
         message = (
@@ -522,21 +464,22 @@ class SimDriver(PacingControls):
         )
 
     def _pacing_changed(self) -> None:
-        if self._pacer.run_until_ns is None:
+        if self._core.pacer.run_until_ns is None:
             self._step_until_ns = None  # pause() and resume() end a step_until()
-        self._poke()
+        self._wake_driver()
 
     def _stepping_until(self, when_ns: int) -> None:
         self._step_until_ns = when_ns
-        heapq.heappush(self._heap, (when_ns, self._seq(), None))  # stop exactly there
-        self._poke()
+        self._core.stop_at(when_ns)  # stop exactly there
+        self._wake_driver()
 
     def _extend_step_until(self, when_ns: int) -> None:
         if self._step_until_ns is None or self._step_until_ns < when_ns:
-            self._pacer.run_until(when_ns)
+            pacer = self._core.pacer
+            pacer.run_until(when_ns)
             self._step_until_ns = when_ns
-            self._pacer.reanchor()
-            self._poke()
+            pacer.reanchor()
+            self._wake_driver()
 
     @contextlib.contextmanager
     def hold_time(self) -> Iterator[None]:
@@ -552,24 +495,51 @@ class SimDriver(PacingControls):
         finally:
             self._holds -= 1
             if not self._holds:
-                self._poke()
+                self._wake_driver()
 
-    # ------------------------------------------------------------ scheduling
+    # ------------------------------------------------ what the kernel asks the driver
 
-    def _push_sleep(self, when_ns: int) -> asyncio.Future[None]:
-        """A future resolved when sim time reaches ``when_ns`` (every sim-time wait ends here)."""
+    def _new_future(self) -> asyncio.Future[None]:
+        """A future for a sim-time wait (every wait on this driver's clock starts here)."""
         loop = self._loop
         if self._state is not _RUNNING or asyncio.events._get_running_loop() is not loop:
             return self._wait_refused()
         assert loop is not None
-        fut: asyncio.Future[None] = loop.create_future()
-        heap = self._heap
-        heapq.heappush(heap, (when_ns, self._seq(), fut))
-        if when_ns < self._wait_target:
-            self._poke()
-        if len(heap) > self._compact_at:
-            self._compact()
-        return fut
+        return loop.create_future()
+
+    def anything_runnable(self) -> bool:
+        """Whether a task became runnable (a stepping source stops stepping then). False
+        after a lockstep overrun: time advances anyway."""
+        if self._overran:
+            return False
+        ready = self._ready_queue
+        return bool(ready) if ready is not None else bool(self._probe)
+
+    def time_held(self) -> bool:
+        """Whether :meth:`hold_time` holds sim time."""
+        return self._holds > 0
+
+    def could_wake(self) -> bool:
+        """Always: the host loop may serve I/O the driver cannot see, so idle is no deadlock."""
+        return True
+
+    def interrupt_wait(self) -> None:
+        """End the driver's current wait (an earlier deadline, a jump, news from outside)."""
+        self._wake_driver()
+
+    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Whether tasks of ``loop`` may wait on this driver's sim time (for sources)."""
+        return self._state is _RUNNING and loop is self._loop
+
+    def is_closed(self) -> bool:
+        """True once stopped (a source then moves its time without a jump)."""
+        return self._state is _STOPPED
+
+    def call_exception_handler(self, context: dict[str, Any]) -> None:
+        """Report an error from a source (a failing step hook) to the host loop."""
+        loop = self._loop
+        assert loop is not None
+        loop.call_exception_handler(context)
 
     def _wait_refused(self) -> asyncio.Future[None]:
         loop = self._loop
@@ -595,66 +565,27 @@ class SimDriver(PacingControls):
             "runs on (in its thread)"
         )
 
-    def _compact(self) -> None:
-        """Drop cancelled waits (lazily, so that many cancellations cost O(1) each)."""
-        heap = [e for e in self._heap if e[2] is None or not e[2].done()]
-        heapq.heapify(heap)
-        self._heap[:] = heap
-        self._compact_at = max(64, 2 * len(heap))
-
-    def _next_deadline(self) -> int | None:
-        heap = self._heap
-        while heap:
-            fut = heap[0][2]
-            if fut is not None and fut.done():
-                heapq.heappop(heap)
-                continue
-            break
-        late = self._late
-        while late and late[0][2].done():
-            heapq.heappop(late)
-        if heap:
-            return min(heap[0][0], late[0][0]) if late else heap[0][0]
-        return late[0][0] if late else None
-
-    def _wake(self, heap: list[tuple[int, int, _MaybeFuture]]) -> bool:
-        """Wake the waits of ``heap`` due at the current time, in deadline then FIFO order."""
-        now = self._now_ns
-        fired = False
-        while heap and heap[0][0] <= now:
-            fut = heapq.heappop(heap)[2]
-            if fut is not None and not fut.done():
-                fut.set_result(None)
-                fired = True
-        return fired
-
-    def _fire_late(self) -> bool:
-        """Wake the run_until() waits due now (after the work due now has settled)."""
-        return self._wake(self._late)
-
-    def _fire_due(self) -> bool:
-        """Wake every clock wait due at the current time."""
-        return self._wake(self._heap)
-
-    def _poke(self) -> None:
-        fut = self._poke_fut
+    def _wake_driver(self) -> None:
+        """End the driver's current wait (a control changed, stop(), an earlier deadline)."""
+        fut = self._wakeup
         if fut is not None and not fut.done():
             fut.set_result(None)
 
-    async def _wait_poke(self, timeout: float | None, target: float) -> None:
-        """Wait up to ``timeout`` wall seconds (None: no limit) or until poked: a control
-        changed, stop() was called, or a wait earlier than ``target`` was registered."""
+    async def _wait(self, timeout: float | None, notify_before: int) -> None:
+        """Wait up to ``timeout`` wall seconds (None: no limit) or until woken: a control
+        changed, stop() was called, or a deadline before ``notify_before`` was scheduled."""
         loop = self._loop
         assert loop is not None
         fut: asyncio.Future[None] = loop.create_future()
-        self._poke_fut = fut
-        self._wait_target = target
+        self._wakeup = fut
+        core = self._core
+        core.notify_before = notify_before
         handle = None if timeout is None else loop.call_later(timeout, _resolve, fut)
         try:
             await fut
         finally:
-            self._poke_fut = None
-            self._wait_target = math.inf
+            self._wakeup = None
+            core.notify_before = -1
             if handle is not None:
                 handle.cancel()
 
@@ -680,11 +611,13 @@ class SimDriver(PacingControls):
         """Yield until the work woken at the current sim time is done (bounded)."""
         needed = 1 if self._ready_queue is not None else _QUIET_CHECKS_BY_TASKS
         quiet = 0
+        core = self._core
+        self._overran = False
         for _ in range(self._max_settle_yields):
             await asyncio.sleep(0)
             if stop_early and self._stopping:
                 return
-            if self._heap and self._heap[0][0] <= self._now_ns and self._fire_due():
+            if core.due_now() and core.wake_due():
                 quiet = 0  # clock.sleep(0) and sleep_until(now) wake like a yield
                 continue
             if self._quiescent():
@@ -694,51 +627,35 @@ class SimDriver(PacingControls):
             else:
                 quiet = 0
         if stop_early:
+            self._overran = True
             self._lockstep_overruns += 1
 
-    def _pacer_wait(self, timeout: float | None) -> bool:
-        # The Pacer blocks through this callback on a SimEventLoop; here it only records how
-        # long to wait and abandons the advance: the driver awaits that on the host loop.
-        self._pace_waiting = True
-        self._pace_timeout = timeout
-        return True
-
     async def _run(self) -> None:
-        pacer = self._pacer
-        source = self._source
+        core = self._core
         error: BaseException | None = None
         try:
             while True:
-                self._fire_due()
+                core.wake_due()
                 await self._settle(stop_early=True)
                 if self._stopping:
                     return
-                if self._late and self._late[0][0] <= self._now_ns and self._fire_late():
+                if core.settled_due_now() and core.wake_settled():
                     continue
-                if self._holds:
-                    # Time is held; waits due now (clock.sleep(0)) still wake.
-                    await self._wait_poke(None, self._now_ns + 1)
-                    continue
-                target = self._next_deadline()
-                if target is not None and target <= self._now_ns:
-                    continue
-                if target is None and not source.free_running:
-                    await self._wait_poke(None, math.inf)
-                    pacer.reanchor()  # standing still with nothing scheduled is not lag
-                    continue
-                if target is not None and source.discrete_event and pacer.idle:
-                    self._now_ns = target
-                    continue
-                self._pace_waiting = False
                 self._probe.arm()
-                now = source.advance(target, None if pacer.idle else pacer.allow)
-                # A discrete-event source whose jumps the driver made itself may report a
-                # stale time when its gate says no: the driver's time is the truth then.
-                self._now_ns = max(now, self._now_ns) if source.discrete_event else now
-                if self._pace_waiting:
-                    await self._wait_poke(
-                        self._pace_timeout, math.inf if target is None else target
-                    )
+                outcome = core.advance()
+                if outcome in (DUE, MOVED):
+                    continue
+                if outcome == HELD:
+                    # Time is held; waits due now (clock.sleep(0)) still wake.
+                    await self._wait(None, core.now_ns + 1)
+                elif outcome == PACING:
+                    target = core.next_deadline()
+                    await self._wait(core.pacing_delay, _ANY_DEADLINE if target is None else target)
+                elif outcome == WAIT_SOURCE:
+                    await self._wait(_EXTERNAL_POLL, _ANY_DEADLINE)
+                else:  # nothing scheduled and time cannot move on its own: wait for a wait
+                    await self._wait(None, _ANY_DEADLINE)
+                    core.pacer.reanchor()  # standing still with nothing scheduled is not lag
         except BaseException as exc:
             error = exc
             raise
@@ -750,26 +667,15 @@ class SimDriver(PacingControls):
         self._stopping = True
         failure = error if isinstance(error, Exception) else None
         self._error = failure
-        heap, self._heap = self._heap, []
-        for _, _, fut in heap:
-            if fut is None or fut.done():
-                continue
-            if failure is not None:
-                fut.set_exception(failure)
-            else:
-                fut.cancel()
-        late, self._late = self._late, []
-        for _, _, fut in late:
-            if not fut.done():
-                fut.set_exception(
-                    failure
-                    or LoopClosedError(
-                        "the SimDriver was stopped before sim time reached the run_until() target"
-                    )
-                )
+        self._core.end_waits(
+            failure,
+            lambda: LoopClosedError(
+                "the SimDriver was stopped before sim time reached the run_until() target"
+            ),
+        )
         source = self._source
-        if source._loop is self:
-            source.detach()  # a discrete-event source keeps the time the driver reached
+        if source._host is self._core:
+            source.detach()  # the source keeps its time for a next host
         loop = self._loop
         assert loop is not None
         if _clock._attached.get(loop) is self._clock:
@@ -777,49 +683,3 @@ class SimDriver(PacingControls):
                 attach_clock(loop, self._previous_clock)
             else:
                 detach_clock(loop)
-
-    # ------------------------------------------------ what a time source needs
-
-    @property
-    def _ready(self) -> Any:
-        """Truthy once a task became runnable (sources stop stepping then)."""
-        if self._ready_queue is not None:
-            return self._ready_queue
-        return self._probe
-
-    def _runs_on(self, loop: asyncio.AbstractEventLoop) -> bool:
-        """Whether tasks of ``loop`` may wait on this driver's sim time (for sources)."""
-        return self._state is _RUNNING and loop is self._loop
-
-    def is_closed(self) -> bool:
-        """True once stopped (a source then moves its time without a jump)."""
-        return self._state is _STOPPED
-
-    def call_exception_handler(self, context: dict[str, Any]) -> None:
-        """Report an error from a source (a failing step hook) to the host loop."""
-        loop = self._loop
-        assert loop is not None
-        loop.call_exception_handler(context)
-
-    def _jump_time(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
-        """Move sim time discontinuously (a reset or a restored snapshot); see SimEventLoop."""
-        jump = TimeJump(Time._from_ns(before_ns, SIM), Time._from_ns(after_ns, SIM))
-        handlers = [h for h in list(self._jump_handlers) if h.threshold.matches(jump)]
-        for handler in handlers:
-            if handler.pre is not None:
-                handler.pre(jump)
-        assign(after_ns)
-        self._now_ns = after_ns
-        heap, self._heap = self._heap, []
-        late, self._late = self._late, []
-        for _, _, fut in heap + late:
-            if fut is not None and not fut.done():
-                fut.set_exception(ClockJumped(jump))
-        if self._step_until_ns is not None and self._step_until_ns > after_ns:
-            heapq.heappush(self._heap, (self._step_until_ns, self._seq(), None))
-        self._pacer.reanchor()
-        self._poke()
-        for handler in handlers:
-            if handler.post is not None:
-                handler.post(jump)
-        return jump

@@ -1,21 +1,18 @@
 """The simulation event loop: a real asyncio loop whose ``time()`` is simulation time.
 
-How one iteration works (DESIGN section 4):
+The loop is one host of the simulation kernel (:class:`~evclock._core.SimCore`, where the
+advancement rule lives). One iteration:
 
-1. Run everything ready at the current sim time ``t``.
-2. Poll real I/O without blocking; what arrives is handled at ``t``.
-3. If work outside the loop is in flight (executor jobs, explicit holds, busy threads),
-   wait for it in wall time without moving sim time.
-4. Otherwise advance: the time source jumps (virtual time) or steps the physics toward the
-   next deadline, paced as requested; I/O is served while pacing waits.
-5. If nothing can ever happen - a deadlock - raise :class:`DeadlockError` naming the tasks.
+1. If nothing is runnable, ask the kernel to advance (``SimCore.advance``) and do what it
+   answers: wait for outside work, wait as pacing asks (serving I/O), wait for I/O, or raise
+   :class:`DeadlockError`. Without pacing, I/O or outside work, a shorter path moves time
+   straight to the next deadline.
+2. Poll real I/O without blocking; what arrives is handled at the current sim time.
+3. Take the kernel's entries due now, run the callbacks that were ready, then fire the due
+   entries - in exactly the order stock asyncio would run them.
 
-Scheduling is ours: one heap of ``(when_ns, seq, kind, obj)`` entries in integer
-nanoseconds, where ``seq`` makes timers due at the same time fire in the order they were
-scheduled. ``kind`` 0 is a sleep future resolved in place (``clock.sleep``); kind 1 a
-``TimerHandle`` (``call_at``, ``call_later``, ``asyncio.sleep``, timeouts). This is why
-``_run_once`` is overridden rather than merely the selector: asyncio's own heap orders
-timers by float ``when`` only, which is neither FIFO on ties nor exact.
+``_run_once`` is overridden rather than merely the selector because asyncio's own heap
+orders timers by float ``when`` only, which is neither FIFO on ties nor exact.
 """
 
 from __future__ import annotations
@@ -25,16 +22,17 @@ import collections
 import concurrent.futures
 import contextlib
 import contextvars
-import heapq
-import itertools
+import functools
 import math
+import operator
 import selectors
 import threading
 import time
-from asyncio import events, futures
+from asyncio import events
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
+from ._core import DEADLOCK, HELD, MOVED, PACING, WAIT_IO, SimCore
 from ._errors import (
     DeadlockError,
     InvalidArgumentError,
@@ -43,11 +41,10 @@ from ._errors import (
     NotRunningError,
     StallError,
 )
-from ._jumps import JumpHandle, TimeJump
-from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
+from ._pacing import DEFAULT_MAX_LAG, PacingControls
 from ._tasks import describe_tasks
 from ._threads import busy_threads, could_call_back
-from ._time import SIM, Time
+from ._time import MAX_TIME_NS, real_number
 from .sources import TimeSource, VirtualTimeSource
 
 if TYPE_CHECKING:
@@ -56,8 +53,8 @@ if TYPE_CHECKING:
 _T = TypeVar("_T")
 _Ts = TypeVarTuple("_Ts")
 
-_SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
-_SLEEP, _HANDLE = 0, 1
+_Future = asyncio.Future
+_read_debug = operator.attrgetter("_debug")
 # Read on every advance: threading.active_count() would take a lock each time.
 _thread_registry: dict[int, threading.Thread] = threading._active  # type: ignore[attr-defined]
 _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # type: ignore[attr-defined]
@@ -66,23 +63,26 @@ _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # ty
 DEFAULT_STALL_TIMEOUT = 60.0
 #: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
 _THREAD_POLL = 0.001
-#: external-source contract: wall seconds an external source waits for I/O before it is
-#: asked again (it checks its own wall deadlines then).
+#: While an external source waits for the outside, ask it again this often (wall seconds)
+#: even if no I/O arrives, so that it can check its own liveness deadline.
 _EXTERNAL_POLL = 0.05
+#: Seconds beyond which a float time cannot be sim time (2**63 - 1 ns): such a timer never fires.
+_MAX_TIME_S = MAX_TIME_NS / 1e9
 
 
-def _check_stall_timeout(value: object) -> float | None:
+def check_stall_timeout(value: object) -> float | None:
     if value is None:
         return None
-    if isinstance(value, bool) or not isinstance(value, int | float):
+    seconds = real_number(value)
+    if seconds is None:
         raise InvalidTypeError(
             f"stall_timeout must be seconds (a number) or None, got {type(value).__name__}"
         )
-    if math.isnan(value) or value <= 0:
+    if math.isnan(seconds) or seconds <= 0:
         raise InvalidArgumentError(
             f"stall_timeout must be a positive number of wall seconds or None, got {value!r}"
         )
-    return float(value)
+    return seconds
 
 
 class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
@@ -111,10 +111,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     if TYPE_CHECKING:
         # asyncio internals this loop works with (they have no public equivalent).
         _ready: collections.deque[asyncio.Handle]
-        _scheduled: list[Any]
         _stopping: bool
         _closed: bool
-        _timer_cancelled_count: int
         _selector: selectors.BaseSelector
         _thread_id: int | None
         _current_handle: asyncio.Handle | None
@@ -124,6 +122,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
         def _process_events(self, event_list: list[Any]) -> None: ...
         def _check_callback(self, callback: object, method: str) -> None: ...
+
+    # A loop whose __init__ failed before asyncio's ran (a bad argument) counts as closed, so
+    # that its __del__ has nothing to complain about; asyncio's __init__ sets it to False.
+    _closed = True
 
     def __init__(
         self,
@@ -145,51 +147,43 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
                 f"got {type(source).__name__}"
             )
-        # Validate everything before the selector (a resource) exists; until then the loop
-        # counts as closed, so a rejected loop's __del__ has nothing to complain about.
-        self._closed = True
-        self._stall_timeout = _check_stall_timeout(stall_timeout)
-        check_rtf(rtf)
-        check_max_lag(max_lag)
-        self._now_ns: int = source.now_ns
-        source.attach(self)  # may refuse (a source drives one loop): before the selector too
+        # Validate everything before the selector (a resource) exists.
+        self._stall_timeout = check_stall_timeout(stall_timeout)
+        self._core = core = SimCore(
+            source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
+        )
+        core.future_factory = self._refuse_wait
+        source.attach(core)  # may refuse (a source drives one host): before the selector too
         super().__init__(selector)
+        # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
+        # every callback: answer from C, without a Python frame (set_debug() sets _debug).
+        self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
         self._source = source
-        self._seq = itertools.count().__next__
+        core.future_loop = self  # waits are possible from now until close()
         # Registered file descriptors, read on every iteration: the selector's own dict when
         # it exposes one (all stdlib selectors do), else its public mapping view. The
         # self-pipe is always registered, so "real I/O" means more than one entry.
         self._io_map: Any = getattr(self._selector, "_fd_to_key", None) or self._selector.get_map()
-        self._pacer = Pacer(
-            self._wait_io, self._get_now_ns, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
-        )
         if paused:
-            self._pacer.pause()
-        self._advance_directly = self._jump_when_idle = False
+            core.pacer.pause()
+        self._fast_path = False
         self._update_fast_path()
         self._holds = 0
         self._holds_lock = threading.Lock()
         self._held_since: float | None = None
         self._watch_threads = bool(watch_threads)
-        self._jump_handlers: list[JumpHandle] = []
         self._sim_clock: SimClock | None = None
 
     # ----------------------------------------------------------------- time
 
     def time(self) -> float:
         """Sim time in float seconds (derived from the exact integer nanoseconds)."""
-        return self._now_ns / 1_000_000_000
-
-    def _get_now_ns(self) -> int:
-        return self._now_ns
+        return self._core.now_ns / 1_000_000_000
 
     @property
     def now_ns(self) -> int:
         """Sim time in integer nanoseconds."""
-        return self._now_ns
-
-    def _runs_on(self, loop: asyncio.AbstractEventLoop) -> bool:
-        return loop is self
+        return self._core.now_ns
 
     @property
     def source(self) -> TimeSource:
@@ -203,7 +197,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if clock is None:
             from ._clock import SimClock
 
-            clock = self._sim_clock = SimClock(self)
+            clock = self._sim_clock = SimClock(self._core, self)
         return clock
 
     # ------------------------------------------------------------ scheduling
@@ -217,9 +211,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     ) -> asyncio.TimerHandle:
         if delay is None:
             raise TypeError("delay must not be None")
-        if not -math.inf < delay < math.inf:
+        if not -_MAX_TIME_S < delay < _MAX_TIME_S:
             return self.call_at(self.time() + delay, callback, *args, context=context)
-        when_ns = self._now_ns + round(delay * 1e9)
+        when_ns = self._core.now_ns + round(delay * 1e9)
         return self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
 
     def call_at(
@@ -231,13 +225,13 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     ) -> asyncio.TimerHandle:
         if when is None:
             raise TypeError("when cannot be None")
-        if when == math.inf:
-            # "Never" (anyio's sleep_forever, an unbounded CancelScope): a handle that is
-            # never scheduled, so it can neither fire nor move time.
-            self._check_closed()
-            return events.TimerHandle(when, callback, args, self, context)
         if when != when or when == -math.inf:
             raise InvalidArgumentError(f"call_at() needs a finite time, got {when!r}")
+        if when > _MAX_TIME_S:
+            # "Never" (anyio's sleep_forever, an unbounded CancelScope, a huge delay): beyond
+            # sim time's range, as on stock asyncio a timer that never fires nor moves time.
+            self._check_closed()
+            return events.TimerHandle(when, callback, args, self, context)
         return self._call_at_ns(round(when * 1e9), when, callback, args, context)
 
     def _call_at_ns(
@@ -248,17 +242,28 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         args: tuple[Any, ...],
         context: Any,
     ) -> asyncio.TimerHandle:
-        self._check_closed()
+        if self._closed:
+            self._check_closed()
+        timer: Any = events.TimerHandle(when, callback, args, self, context)
         if self._debug:
             self._check_thread()
             self._check_callback(callback, "call_at")
-        timer: Any = events.TimerHandle(when, callback, args, self, context)
-        if timer._source_traceback:
-            del timer._source_traceback[-1]
-        heapq.heappush(self._scheduled, (when_ns, self._seq(), _HANDLE, timer))
-        timer._scheduled = True
+            if timer._source_traceback:
+                del timer._source_traceback[-1]
+        self._core.call_at(when_ns, timer)
         handle: asyncio.TimerHandle = timer
         return handle
+
+    def _timer_handle_cancelled(self, handle: asyncio.TimerHandle) -> None:
+        # asyncio private hook: TimerHandle.cancel() reports a cancellation here (also of a
+        # timer that already fired: asyncio.sleep cancels its handle in a finally); the
+        # kernel counts the ones still in its heap, to purge them.
+        if handle._scheduled:  # type: ignore[attr-defined]
+            self._core.timer_cancelled()
+
+    def _refuse_wait(self) -> asyncio.Future[None]:
+        self._check_closed()
+        raise AssertionError("unreachable: the loop is closed")
 
     def _check_closed(self) -> None:
         if self._closed:
@@ -272,43 +277,30 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def _run_once(self) -> None:
         ready = self._ready
         io_map = self._io_map
-        sched = self._scheduled  # mutated in place only, so this reference stays valid
-        heappop = heapq.heappop
+        core = self._core
+        wake_next = core.wake_next
         while True:
+            io_registered = len(io_map) > 1
+            if io_registered:
+                self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
-                # Fast path when nothing else can matter (no pacing, no I/O, no outside work,
-                # no other thread): straight to a live head entry - a pure jump on virtual
-                # time, steps on a stepping source. Otherwise the full rule in _idle().
+                # The short path when nothing else can matter (no pacing, no I/O, no outside
+                # work, no other thread, not an external source): straight to the next
+                # deadline and what is due there. Otherwise the full rule.
                 if (
-                    self._advance_directly
-                    and sched
-                    and len(io_map) <= 1
+                    self._fast_path
+                    and not io_registered
                     and not self._holds
                     and (len(_thread_registry) + len(_thread_limbo) <= 1 or self._only_daemons())
                 ):
-                    when, _, kind, obj = sched[0]
-                    if obj.done() if kind == _SLEEP else obj._cancelled:
-                        self._idle()
-                    elif when > self._now_ns:
-                        self._held_since = None
-                        self._now_ns = (
-                            when if self._jump_when_idle else self._source.advance(when, None)
-                        )
-                else:
-                    self._idle()
-            elif len(io_map) > 1:
-                self._poll_io(0)
+                    if self._held_since is not None:
+                        self._held_since = None  # nothing holds time any more
+                    if wake_next(ready):
+                        continue
+                self._advance()
             # Entries due now are taken before anything runs, so whatever the callbacks
             # below schedule for the same instant waits for the next iteration, as in asyncio.
-            now = self._now_ns
-            single = batch = None
-            if sched and sched[0][0] <= now:
-                single = heappop(sched)
-                if sched and sched[0][0] <= now:
-                    batch = [single]
-                    single = None
-                    while sched and sched[0][0] <= now:
-                        batch.append(heappop(sched))
+            due = core.take_due()
             if ready:
                 debug = self._debug
                 for _ in range(len(ready)):
@@ -319,18 +311,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                         self._run_handle_debug(handle)
                     else:
                         handle._run()
-            if single is not None:
-                # One entry due alone - the common case - without building a batch.
-                if single[2] == _SLEEP:
-                    if not single[3].done():
-                        self._wake(single[3], None)
-                else:
-                    self._fire([single])
-            elif batch is not None:
-                self._fire(batch)
-            # Keep going without returning to run_forever() only in the plain case of
-            # tasks sleeping in turn (the common case in simulation, and the hot path).
-            if ready or self._stopping or not sched:
+            if due is not None:
+                core.fire(due, ready)
+            # Keep going without returning to run_forever() while tasks sleep in turn.
+            if ready or self._stopping:
                 return
 
     def _run_handle_debug(self, handle: asyncio.Handle) -> None:
@@ -346,138 +330,56 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         finally:
             self._current_handle = None
 
-    def _fire(self, batch: list[tuple[int, int, int, Any]]) -> None:
-        """Fire due entries in (when, seq) order.
-
-        A sleeping task is resumed in place: its future is resolved and its wake-up callback
-        run right here, instead of through a ``call_soon`` hop. The order is exactly the one
-        asyncio would produce (every due entry after the callbacks that were already ready,
-        each in scheduling order); it just skips allocating and queueing a Handle per wakeup.
-        """
-        debug = self._debug
-        for _, _, kind, obj in batch:
-            if kind == _SLEEP:
-                if obj.done():
-                    continue
-                fut, result = obj, None
-            else:
-                obj._scheduled = False
-                if obj._cancelled:
-                    self._timer_cancelled_count -= 1
-                    continue
-                if obj._callback is not _SET_RESULT_UNLESS_CANCELLED:
-                    if debug:
-                        self._run_handle_debug(obj)
-                    else:
-                        obj._run()
-                    continue
-                fut, result = obj._args  # asyncio.sleep(): resolve its future the same way
-                if fut.done():
-                    continue
-            self._wake(fut, result)
-
-    def _wake(self, fut: asyncio.Future[Any], result: object) -> None:
-        """Resolve a sleep's future and run its waiters' wake-ups in place (no Handle hop)."""
-        callbacks = fut._callbacks
-        if not callbacks:
-            fut.set_result(result)
+    def _advance(self) -> None:
+        """Nothing is runnable now: apply the kernel's rule and wait as it answers."""
+        outcome = self._core.advance()
+        if outcome == HELD:
+            self._wait_for_outside_work()
             return
-        if len(callbacks) == 1:  # the sleeping task's own wake-up: the usual case
-            callback, ctx = callbacks[0]
-            fut.remove_done_callback(callback)
-            fut.set_result(result)
-            try:
-                ctx.run(callback, fut)
-            except (SystemExit, KeyboardInterrupt):
-                raise
-            except BaseException as exc:
-                self._report_wakeup_error(exc)
+        self._held_since = None if outcome <= MOVED else self._held_since
+        if outcome <= MOVED:
             return
-        for callback, _ctx in callbacks:
-            fut.remove_done_callback(callback)
-        fut.set_result(result)
-        for callback, ctx in callbacks:
-            try:
-                ctx.run(callback, fut)
-            except (SystemExit, KeyboardInterrupt):
-                raise
-            except BaseException as exc:
-                self._report_wakeup_error(exc)
+        if outcome == PACING:
+            self._wait_pacing(self._core.pacing_delay)
+        elif outcome == WAIT_IO:
+            self._wait_for_io()
+        elif outcome == DEADLOCK:
+            raise DeadlockError(
+                "deadlock: every task is waiting and nothing can wake one "
+                f"(no timer is scheduled, {self._source.describe()} cannot advance on its "
+                "own, no I/O is registered and no other thread is working). Waiting tasks:\n"
+                + "\n".join(f"  {line}" for line in self._describe_waiting_tasks()),
+                self._describe_waiting_tasks(),
+            )
+        else:  # WAIT_SOURCE: an external source waits for its messages (through the loop)
+            self._poll_io(_EXTERNAL_POLL)
 
-    def _report_wakeup_error(self, exc: BaseException) -> None:
-        self.call_exception_handler(
-            {"message": "Exception in the wake-up callback of a sim-time sleep", "exception": exc}
-        )
+    # ------------------------------------------------ what the kernel asks the loop
 
-    def _drop_cancelled_head(self) -> None:
-        sched = self._scheduled
-        while sched:
-            _, _, kind, obj = sched[0]
-            if kind == _SLEEP:
-                if not obj.done():
-                    break
-            elif obj._cancelled:
-                obj._scheduled = False
-                self._timer_cancelled_count -= 1
-            else:
-                break
-            heapq.heappop(sched)
-        if self._timer_cancelled_count > 64 and self._timer_cancelled_count * 2 > len(sched):
-            self._purge_cancelled()
+    def anything_runnable(self) -> bool:
+        """Whether a callback is ready to run (the kernel does not advance then)."""
+        return bool(self._ready)
 
-    def _purge_cancelled(self) -> None:
-        keep = []
-        for entry in self._scheduled:
-            obj = entry[3]
-            if entry[2] == _SLEEP:
-                if not obj.done():
-                    keep.append(entry)
-            elif obj._cancelled:
-                obj._scheduled = False
-            else:
-                keep.append(entry)
-        heapq.heapify(keep)
-        self._scheduled[:] = keep
-        self._timer_cancelled_count = 0
-
-    def _idle(self) -> None:
-        """Nothing is runnable at the current time: serve I/O, wait for outside work, or advance."""
-        sched = self._scheduled
-        if sched:
-            _, _, kind, obj = sched[0]
-            if (
-                obj.done() if kind == _SLEEP else obj._cancelled
-            ) or self._timer_cancelled_count > 64:
-                self._drop_cancelled_head()
-            if sched and sched[0][0] <= self._now_ns:
-                return
-        if len(self._io_map) > 1 and self._poll_io(0):
-            return
-        if self._holds or (
+    def time_held(self) -> bool:
+        """Is sim time held by work outside the loop (executor jobs, holds, busy threads)?"""
+        return bool(self._holds) or (
             self._watch_threads
             and len(_thread_registry) + len(_thread_limbo) > 1
             and not self._only_daemons()
-            and busy_threads(self._thread_id)
-        ):
-            self._wait_for_outside_work()
-            return
-        if self._ready:
-            return  # a thread handed work over while we looked
-        self._held_since = None
-        target = sched[0][0] if sched else None
-        if target is None and not self._source.free_running:
-            self._wait_for_io_or_deadlock()
-            return
-        pacer = self._pacer
-        if self._jump_when_idle and target is not None:
-            self._now_ns = max(target, self._now_ns)
-        else:
-            before = self._now_ns
-            self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
-            # external-source contract: no progress means "waiting for the outside": wait
-            # for its I/O (a socket, a thread calling back), never spin, never deadlock.
-            if self._now_ns == before and self._source.external and not self._ready:
-                self._poll_io(_EXTERNAL_POLL)
+            and bool(busy_threads(self._thread_id))
+        )
+
+    def could_wake(self) -> bool:
+        """Could anything outside wake a task with nothing scheduled? (registered I/O)"""
+        return len(self._io_map) > 1
+
+    def interrupt_wait(self) -> None:
+        """Nothing to do: the loop's waits are I/O waits, and whatever calls this runs in
+        the loop (so the wait is over) or comes through the self-pipe (which ends it)."""
+
+    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Whether tasks of ``loop`` are on this sim time (only this loop's)."""
+        return loop is self
 
     def _only_daemons(self) -> bool:
         """Whether every thread but the loop's is a daemon (ignored: background services)."""
@@ -493,16 +395,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._process_events(event_list)
         return bool(self._ready)
 
-    def _wait_io(self, timeout: float | None) -> bool:
-        """Pacing/pause wait: block up to ``timeout`` serving I/O; True if work is ready."""
-        if timeout is None and len(self._io_map) <= 1 and not could_call_back(self._thread_id):
+    def _wait_pacing(self, delay: float | None) -> None:
+        """Wait as pacing asks, serving I/O: ``delay`` wall seconds, None until a control
+        changes (paused with no step left)."""
+        if delay is None and len(self._io_map) <= 1 and not could_call_back(self._thread_id):
             raise DeadlockError(
                 "the loop is paused and nothing could ever resume it: no I/O is "
                 "registered and no other thread runs; call resume() or step() from a "
                 "task before pausing, or serve a control channel (socket) that can",
                 self._describe_waiting_tasks(),
             )
-        return self._poll_io(timeout)
+        self._poll_io(delay)
 
     def _held_for(self) -> float:
         now = time.monotonic()
@@ -527,15 +430,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             timeout = min(timeout, max(limit - held, 0.0))
         self._poll_io(timeout)
 
-    def _wait_for_io_or_deadlock(self) -> None:
-        if len(self._io_map) <= 1:
-            raise DeadlockError(
-                "deadlock: every task is waiting and nothing can wake one "
-                f"(no timer is scheduled, {self._source.describe()} cannot advance on its "
-                "own, no I/O is registered and no other thread is working). Waiting tasks:\n"
-                + "\n".join(f"  {line}" for line in self._describe_waiting_tasks()),
-                self._describe_waiting_tasks(),
-            )
+    def _wait_for_io(self) -> None:
         held = self._held_for()
         limit = self._stall_timeout
         if limit is not None and held > limit:
@@ -590,15 +485,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._release_hold_cb(None)
 
     def _update_fast_path(self) -> None:
-        # Without pacing the loop may advance straight to the next deadline; a
-        # discrete-event source is then advanced by the loop itself: a jump.
-        # external-source contract: an external source is never advanced on the fast path.
-        self._advance_directly = self._pacer.idle and not self._source.external
-        self._jump_when_idle = self._source.discrete_event and self._pacer.idle
+        # Without pacing the loop may advance straight to the next deadline, unless the
+        # source waits for the outside (external-source contract: never take the short path).
+        self._fast_path = self._core.pacer.unpaced and not self._source.external
 
     # ------------------------------------------------------------ pacing API
 
     def _pacing_changed(self) -> None:
+        self._update_fast_path()
+
+    def _stepping_until(self, when_ns: int) -> None:
+        self._core.stop_at(when_ns)  # virtual time stops exactly there
         self._update_fast_path()
 
     def _require_running(self, what: str) -> None:
@@ -609,50 +506,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 "loop.call_soon_threadsafe), or create the loop with paused=True to start paused"
             )
 
-    # ------------------------------------------------------------- jumps
-
-    def _jump_time(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
-        """Move sim time discontinuously (a reset or a restored snapshot).
-
-        Pre-jump handlers run, the source takes the new time, every pending ``clock.sleep``
-        is woken with :class:`ClockJumped`, other timers keep their remaining delay, then
-        post-jump handlers run.
-        """
-        from ._errors import ClockJumped
-
-        jump = TimeJump(Time._from_ns(before_ns, SIM), Time._from_ns(after_ns, SIM))
-        handlers = [h for h in list(self._jump_handlers) if h.threshold.matches(jump)]
-        for handler in handlers:
-            if handler.pre is not None:
-                handler.pre(jump)
-        assign(after_ns)
-        self._now_ns = after_ns
-        delta = after_ns - before_ns
-        kept = []
-        for when_ns, seq, kind, obj in self._scheduled:
-            if kind == _SLEEP:
-                if not obj.done():
-                    obj.set_exception(ClockJumped(jump))
-            elif not obj._cancelled:
-                shifted = max(when_ns + delta, after_ns)
-                obj._when = shifted / 1_000_000_000
-                kept.append((shifted, seq, kind, obj))
-            else:
-                obj._scheduled = False
-        heapq.heapify(kept)
-        self._scheduled[:] = kept
-        self._timer_cancelled_count = 0
-        self._pacer.reanchor()
-        for handler in handlers:
-            if handler.post is not None:
-                handler.post(jump)
-        return jump
-
     # ------------------------------------------------------------- closing
 
     def close(self) -> None:
         if self.is_closed():
             return
+        self._core.future_loop = None  # waits now go to future_factory, which refuses them
         try:
             super().close()
         finally:

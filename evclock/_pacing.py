@@ -6,6 +6,7 @@ import collections
 import math
 import time
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 from ._errors import (
     ClockMismatchError,
@@ -14,7 +15,10 @@ from ._errors import (
     LagError,
     PacingError,
 )
-from ._time import SIM, Time
+from ._time import SIM, Time, real_number, whole_number
+
+if TYPE_CHECKING:
+    from ._core import SimCore
 
 #: How far behind its schedule a paced run may fall before it re-anchors instead of
 #: bursting to catch up (seconds of wall time).
@@ -25,11 +29,11 @@ def check_rtf(rtf: object) -> float | None:
     """Validate a real-time factor: None (as fast as possible) or a positive finite number."""
     if rtf is None:
         return None
-    if isinstance(rtf, bool) or not isinstance(rtf, int | float):
+    value = real_number(rtf)
+    if value is None:
         raise InvalidTypeError(
             f"rtf must be None (as fast as possible) or a positive number, got {type(rtf).__name__}"
         )
-    value = float(rtf)
     if not math.isfinite(value) or value <= 0:
         raise InvalidArgumentError(
             f"rtf must be a positive finite real-time factor (1.0 = real time), got {rtf!r}; "
@@ -40,58 +44,52 @@ def check_rtf(rtf: object) -> float | None:
 
 def check_max_lag(max_lag: object) -> float:
     """Validate a lag bound: a positive finite number of wall seconds."""
-    if isinstance(max_lag, bool) or not isinstance(max_lag, int | float):
+    value = real_number(max_lag)
+    if value is None:
         raise InvalidTypeError(f"max_lag must be a number of seconds, got {type(max_lag).__name__}")
-    if not math.isfinite(max_lag) or max_lag <= 0:
+    if not math.isfinite(value) or value <= 0:
         raise InvalidArgumentError(f"max_lag must be a positive number of seconds, got {max_lag!r}")
-    return float(max_lag)
+    return value
 
 
 class RtfMeter:
-    """Measures the achieved real-time factor: sim seconds per wall second."""
+    """Measures the achieved real-time factor: sim seconds per wall second.
 
-    def __init__(self, window: float = 2.0, wall: Callable[[], float] = time.perf_counter) -> None:
+    It takes its first sample when created (with the host), so a reading is defined as soon
+    as any wall time has passed.
+    """
+
+    def __init__(
+        self, sim_ns: int, window: float = 2.0, wall: Callable[[], float] = time.perf_counter
+    ) -> None:
         self._wall = wall
         self._window = window
         self._samples: collections.deque[tuple[float, int]] = collections.deque()
-        self._first: tuple[float, int] | None = None
+        self.sample(sim_ns)
 
     def sample(self, sim_ns: int) -> None:
         """Record the pair (now, ``sim_ns``)."""
         now = self._wall()
-        if self._first is None:
-            self._first = (now, sim_ns)
         self._samples.append((now, sim_ns))
         while len(self._samples) > 2 and now - self._samples[0][0] > self._window:
             self._samples.popleft()
 
     def recent(self) -> float | None:
-        """Achieved factor over the last window, or None before two samples."""
-        if len(self._samples) < 2:
-            return None
+        """Achieved factor over the last window; None while no wall time has passed."""
         (w0, s0), (w1, s1) = self._samples[0], self._samples[-1]
-        return (s1 - s0) / 1e9 / (w1 - w0) if w1 > w0 else None
-
-    def overall(self) -> float | None:
-        """Achieved factor since the first sample."""
-        if self._first is None or not self._samples:
-            return None
-        (w0, s0), (w1, s1) = self._first, self._samples[-1]
         return (s1 - s0) / 1e9 / (w1 - w0) if w1 > w0 else None
 
 
 class Pacer:
-    """Decides, before each increment of sim time, whether and when it may happen.
+    """Decides, before each increment of sim time, whether it may happen now.
 
-    The loop gives it two callables: ``wait(timeout)`` blocks up to ``timeout`` wall seconds
-    while serving I/O and returns True if something became runnable at the current sim time
-    (then the advance is abandoned, to be retried after that work ran); ``now_ns()`` reads
-    sim time.
+    It never blocks: :meth:`allow` answers yes, or no with :attr:`delay`, the wall seconds the
+    host should wait (serving I/O) before asking again - None meaning "until a control
+    changes" (paused with no step left). ``now_ns()`` reads sim time.
     """
 
     def __init__(
         self,
-        wait: Callable[[float | None], bool],
         now_ns: Callable[[], int],
         *,
         rtf: float | None = None,
@@ -99,11 +97,6 @@ class Pacer:
         max_lag: float = DEFAULT_MAX_LAG,
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
-        if not (isinstance(max_lag, int | float) and math.isfinite(max_lag) and max_lag > 0):
-            raise InvalidArgumentError(
-                f"max_lag must be a positive number of seconds, got {max_lag!r}"
-            )
-        self._wait = wait
         self._now_ns = now_ns
         self._wall = wall
         self._rtf = check_rtf(rtf)
@@ -113,9 +106,13 @@ class Pacer:
         self.paused = False
         self._step_budget = 0
         self._run_until_ns: int | None = None
-        self.meter = RtfMeter(wall=wall)
-        self.idle = True
-        self._update_idle()
+        self.meter = RtfMeter(now_ns(), wall=wall)
+        #: True when advances need no pacing at all (the hot path skips the pacer).
+        self.unpaced = True
+        #: True when the last :meth:`allow` said no; :attr:`delay` says how long to wait.
+        self.refused = False
+        self.delay: float | None = None
+        self._update_unpaced()
 
     @property
     def run_until_ns(self) -> int | None:
@@ -131,11 +128,10 @@ class Pacer:
     def rtf(self, value: float | None) -> None:
         self._rtf = check_rtf(value)
         self._anchor = None
-        self._update_idle()
+        self._update_unpaced()
 
-    def _update_idle(self) -> None:
-        #: True when advances need no pacing at all (the hot path skips the pacer).
-        self.idle = self._rtf is None and not self.paused
+    def _update_unpaced(self) -> None:
+        self.unpaced = self._rtf is None and not self.paused
 
     def reanchor(self) -> None:
         """Forget the pacing schedule (after a jump or an rtf change): pace from now on."""
@@ -145,14 +141,14 @@ class Pacer:
         self.paused = True
         self._step_budget = 0
         self._run_until_ns = None
-        self._update_idle()
+        self._update_unpaced()
 
     def resume(self) -> None:
         self.paused = False
         self._step_budget = 0
         self._run_until_ns = None
         self._anchor = None
-        self._update_idle()
+        self._update_unpaced()
 
     def step(self, count: int) -> None:
         if not self.paused:
@@ -173,16 +169,13 @@ class Pacer:
         )
 
     def allow(self, next_ns: int) -> bool:
-        """May sim time move to ``next_ns`` now? Waits (serving I/O) as pacing requires."""
+        """May sim time move to ``next_ns`` now? If not, :attr:`delay` says how long to wait."""
         stepping = False
-        while self.paused:
+        if self.paused:
             if self._step_budget > 0:
-                stepping = True  # spent only once the pacing wait below is over
-                break
-            if self._run_until_ns is not None and self._now_ns() < self._run_until_ns:
-                break
-            if self._wait(None):
-                return False
+                stepping = True  # spent only once the pacing delay below is over
+            elif self._run_until_ns is None or self._now_ns() >= self._run_until_ns:
+                return self._refuse(None)
         if self._rtf is not None:
             wall = self._wall()
             if self._anchor is None:
@@ -201,22 +194,26 @@ class Pacer:
                 now_ns = self._now_ns()
                 self._anchor = (wall, now_ns)
                 due = wall + (next_ns - now_ns) / 1e9 / self._rtf
-            while (delay := due - self._wall()) > 0:
-                if self._wait(delay):
-                    return False
+            if due > wall:
+                return self._refuse(due - wall)
         if stepping:
             self._step_budget -= 1
+        self.refused = False
         return True
+
+    def _refuse(self, delay: float | None) -> bool:
+        self.refused = True
+        self.delay = delay
+        return False
 
 
 class PacingControls:
     """The pacing API shared by :class:`~evclock.SimEventLoop` and :class:`~evclock.SimDriver`:
     ``rtf``, ``paused``, ``achieved_rtf()``, ``pause()``, ``resume()``, ``step()`` and
-    ``step_until()``. The host provides ``_pacer``, ``_now_ns``, ``_require_running()`` and
-    reacts to changes in ``_pacing_changed()``."""
+    ``step_until()``. The host provides ``_core`` (its :class:`~evclock._core.SimCore`) and
+    ``_require_running()``, and reacts to changes in ``_pacing_changed()``."""
 
-    _pacer: Pacer
-    _now_ns: int
+    _core: SimCore
 
     def _require_running(self, what: str) -> None:
         raise NotImplementedError
@@ -231,47 +228,51 @@ class PacingControls:
     @property
     def rtf(self) -> float | None:
         """Requested real-time factor (None: as fast as possible). Settable while running."""
-        return self._pacer.rtf
+        return self._core.pacer.rtf
 
     @rtf.setter
     def rtf(self, value: float | None) -> None:
-        self._pacer.rtf = value
+        self._core.pacer.rtf = value
         self._pacing_changed()
 
     @property
     def paused(self) -> bool:
         """Whether sim time is paused (work due at the current time still runs)."""
-        return self._pacer.paused
+        return self._core.pacer.paused
 
     def achieved_rtf(self) -> float | None:
-        """Real-time factor achieved over the last couple of wall seconds (None: not yet known).
+        """Real-time factor achieved over the last couple of wall seconds.
 
+        Measured from the previous calls of the last two wall seconds, or from the creation
+        of the loop (driver) on the first call; None only if no wall time has passed since.
         Each call records a sample: poll it periodically (a progress bar, a dashboard).
         """
-        self._pacer.meter.sample(self._now_ns)
-        return self._pacer.meter.recent()
+        meter = self._core.pacer.meter
+        meter.sample(self._core.now_ns)
+        return meter.recent()
 
     def pause(self) -> None:
         """Stop sim time from advancing; I/O keeps being served. Call from the loop's thread."""
         self._require_running("pause()")
-        self._pacer.pause()
+        self._core.pacer.pause()
         self._pacing_changed()
 
     def resume(self) -> None:
         """Let sim time advance again at the requested rtf."""
         self._require_running("resume()")
-        self._pacer.resume()
+        self._core.pacer.resume()
         self._pacing_changed()
 
     def step(self, count: int = 1) -> None:
         """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
         the next deadline on virtual time), then stay paused."""
         self._require_running("step()")
-        if isinstance(count, bool) or not isinstance(count, int):
+        steps = whole_number(count)
+        if steps is None:
             raise InvalidTypeError(f"step() count must be an int, got {type(count).__name__}")
-        if count < 1:
+        if steps < 1:
             raise InvalidArgumentError(f"step() count must be >= 1, got {count}")
-        self._pacer.step(count)
+        self._core.pacer.step(steps)
         self._pacing_changed()
 
     def step_until(self, when: Time) -> None:
@@ -287,10 +288,10 @@ class PacingControls:
             raise ClockMismatchError(
                 f"step_until() needs a sim time, got a {when.clock_type.value} time"
             )
-        if when.nanoseconds <= self._now_ns:
+        if when.nanoseconds <= self._core.now_ns:
             raise InvalidArgumentError(
                 f"step_until() target {when} is not after the current sim time "
-                f"{Time._from_ns(self._now_ns, SIM)}"
+                f"{Time._from_ns(self._core.now_ns, SIM)}"
             )
-        self._pacer.run_until(when.nanoseconds)
+        self._core.pacer.run_until(when.nanoseconds)
         self._stepping_until(when.nanoseconds)

@@ -11,7 +11,16 @@ from fractions import Fraction
 from typing import TYPE_CHECKING, Literal
 
 from ._errors import ClockJumped, InvalidArgumentError, InvalidTypeError
-from ._time import ClockType, Duration, Time, to_nanoseconds
+from ._time import (
+    MAX_TIME_NS,
+    ClockType,
+    Duration,
+    Time,
+    format_time_range_error,
+    real_number,
+    to_nanoseconds,
+    whole_number,
+)
 
 if TYPE_CHECKING:
     from ._clock import Clock
@@ -22,18 +31,33 @@ _RECENT = 4096
 
 
 def _period_fraction(hz: object) -> Fraction:
-    if isinstance(hz, bool) or not isinstance(hz, int | float | Fraction):
+    """The exact period in nanoseconds of a rate of ``hz`` (any real number but bool)."""
+    if isinstance(hz, Fraction):
+        exact = hz
+    elif (whole := whole_number(hz)) is not None:
+        exact = Fraction(whole)
+    elif (value := real_number(hz)) is not None:
+        if not math.isfinite(value):
+            raise InvalidArgumentError(f"rate must be a finite number of hertz, got {hz!r}")
+        exact = Fraction(value)
+    else:
         raise InvalidTypeError(f"rate must be a number of hertz, got {type(hz).__name__}")
-    if isinstance(hz, float) and not math.isfinite(hz):
-        raise InvalidArgumentError(f"rate must be a finite number of hertz, got {hz!r}")
-    if hz <= 0:
+    if exact <= 0:
         raise InvalidArgumentError(
             f"rate must be positive, got {hz!r} Hz; for a one-off delay use clock.sleep()"
         )
-    period = Fraction(10**9) / Fraction(hz)
+    period = Fraction(10**9) / exact
     if period < 1:
         raise InvalidArgumentError(f"rate {hz!r} Hz is above 1 GHz: the period is under 1 ns")
     return period
+
+
+def _format_hz(hz: object) -> str:
+    """A rate for a default name: ``100``, ``0.5``, ``1/3``."""
+    if isinstance(hz, Fraction):
+        return str(hz)
+    value = real_number(hz)
+    return f"{value:g}" if value is not None else str(hz)
 
 
 def _check_policy(policy: object) -> Policy:
@@ -166,7 +190,7 @@ class Rate:
         self._num = period.numerator
         self._den = period.denominator
         self.hz = hz
-        self.name = name if name is not None else f"rate-{hz:g}Hz"
+        self.name = name if name is not None else f"rate-{_format_hz(hz)}Hz"
         self.stats = LoopStats()
         self._start: int | None = None
         self._index = -1
@@ -269,6 +293,8 @@ class Timer:
                 f"timer callback must be callable, got {type(callback).__name__}"
             )
         period_ns = to_nanoseconds(period, "timer period")
+        if period_ns > MAX_TIME_NS:
+            raise InvalidArgumentError(format_time_range_error("timer period", period_ns))
         if period_ns <= 0:
             raise InvalidArgumentError(f"timer period must be positive, got {period!r}")
         self._clock = clock

@@ -10,9 +10,9 @@ from typing import Any, TypeVar
 from ._clock import WallClock, attach_clock
 from ._config import ENV_CLOCK, ENV_USE_SIM_TIME, clock_source, env_clock, env_use_sim_time
 from ._errors import InvalidArgumentError, InvalidTypeError, SimTimeLimitError
-from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop
-from ._pacing import DEFAULT_MAX_LAG
-from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, Time, to_nanoseconds
+from ._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop, check_stall_timeout
+from ._pacing import DEFAULT_MAX_LAG, check_max_lag, check_rtf
+from ._time import STEADY, SYSTEM, ClockType, Duration, Time, to_sim_time_ns
 from .sources import TimeSource, VirtualTimeSource
 
 _T = TypeVar("_T")
@@ -32,16 +32,7 @@ def resolve_use_sim_time(use_sim_time: bool | None = None, *, default: bool = Tr
 
 
 def _start_ns(start: float | Time | Duration) -> int:
-    if isinstance(start, Time):
-        if start.clock_type is not SIM:
-            raise InvalidArgumentError(
-                f"start must be a sim time, got a {start.clock_type.value} time"
-            )
-        return start.nanoseconds
-    ns = to_nanoseconds(start, "start")
-    if ns < 0:
-        raise InvalidArgumentError(f"start must not be negative, got {start!r}")
-    return ns
+    return to_sim_time_ns(start, "start")
 
 
 RTF_MAX = "max"
@@ -112,9 +103,9 @@ def loop_factory(
         )
     make_source = source or functools.partial(VirtualTimeSource, start_ns)
     # Validate the options once, now, rather than at the first loop creation.
-    SimEventLoop(
-        VirtualTimeSource(), rtf=rtf, strict=strict, max_lag=max_lag, stall_timeout=stall_timeout
-    ).close()
+    check_rtf(rtf)
+    check_max_lag(max_lag)
+    check_stall_timeout(stall_timeout)
 
     def new_loop() -> SimEventLoop:
         return SimEventLoop(

@@ -20,6 +20,7 @@ import numbers
 import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
+from fractions import Fraction
 from typing import TYPE_CHECKING, Any, Final, NoReturn, final, overload
 
 from ._errors import ClockMismatchError, InvalidArgumentError, InvalidTypeError
@@ -41,6 +42,8 @@ __all__ = [
 _NS_PER_S: Final = 1_000_000_000
 _I64_MIN: Final = -(2**63)
 _I64_MAX: Final = 2**63 - 1
+#: The largest sim time (and any Time): sim time lives in [0, MAX_TIME_NS] nanoseconds.
+MAX_TIME_NS: Final = _I64_MAX
 _I32_MIN: Final = -(2**31)
 _I32_MAX: Final = 2**31 - 1
 
@@ -120,15 +123,20 @@ def _number_seconds_to_ns(value: object, what: str) -> int | None:
         return int(value) * _NS_PER_S
     if isinstance(value, numbers.Integral):  # e.g. numpy.int64
         return operator.index(value) * _NS_PER_S
-    if isinstance(value, numbers.Real):  # e.g. numpy.float32, fractions.Fraction
+    if isinstance(value, numbers.Rational):  # fractions.Fraction: exact, ties to even
+        exact = Fraction(operator.index(value.numerator), operator.index(value.denominator))
+        return round(exact * _NS_PER_S)
+    if isinstance(value, numbers.Real):  # e.g. numpy.float32
         return _float_seconds_to_ns(float(value), what)
     return None
 
 
 def to_nanoseconds(value: object, what: str) -> int:
-    """Convert seconds (``int`` or ``float``, not ``bool``) or a :class:`Duration` to integer ns.
+    """Convert seconds or a :class:`Duration` to integer nanoseconds: the one converter.
 
-    Floats are rounded to the nearest nanosecond (``round(value * 1e9)``); ints are exact.
+    Seconds are any real number but ``bool``: ``int``, ``float``, ``fractions.Fraction``
+    (exact, ties to even) and numpy integer and float scalars. Floats are rounded to the
+    nearest nanosecond (``round(value * 1e9)``); ints are exact.
     Negative values are returned as they are: callers decide whether they are allowed. There is
     no range check beyond float overflow: callers that build a ``Time``/``Duration`` check the
     range of the result.
@@ -173,6 +181,65 @@ def to_nonnegative_nanoseconds(value: object, what: str, hint: str = "") -> int:
     return ns
 
 
+def to_sim_time_ns(value: object, what: str, hint: str = "") -> int:
+    """Convert a point in sim time - a sim :class:`Time` or seconds since the sim epoch (any
+    real number, see :func:`to_nanoseconds`) - to integer nanoseconds in sim time's range.
+
+    Raises:
+        ClockMismatchError: ``value`` is a Time of another clock.
+        InvalidTypeError: ``value`` is neither a Time nor seconds.
+        InvalidArgumentError: NaN, infinite, negative or beyond ``MAX_TIME_NS``.
+    """
+    if type(value) is Time:
+        if value._clock_type is not ClockType.SIM:
+            raise ClockMismatchError(
+                f"{what} must be a sim time, got a {value._clock_type.value} time"
+            )
+        return value._ns
+    ns = to_nonnegative_nanoseconds(value, what, hint)
+    if ns > _I64_MAX:
+        raise InvalidArgumentError(format_time_range_error(what, ns))
+    return ns
+
+
+def to_span_ns(value: object, what: str, hint: str = "") -> int:
+    """Convert a non-negative span (seconds or a :class:`Duration`) to integer nanoseconds
+    within the time range ``[0, MAX_TIME_NS]``."""
+    ns = to_nonnegative_nanoseconds(value, what, hint)
+    if ns > _I64_MAX:
+        raise InvalidArgumentError(format_time_range_error(what, ns))
+    return ns
+
+
+_NEGATIVE_SLEEP_HINT: Final = (
+    "a negative sleep is a bug in the caller; to wait until a time use sleep_until()"
+)
+
+
+def sleep_duration_ns(duration: object) -> int:
+    """A sleep duration (seconds or a Duration, not negative) in integer nanoseconds."""
+    return to_span_ns(duration, "sleep duration", _NEGATIVE_SLEEP_HINT)
+
+
+def real_number(value: object) -> float | None:
+    """``value`` as a float if it is a real number (not ``bool``; numpy scalars and
+    ``Fraction`` included), else None: for callers that word their own errors."""
+    if type(value) is float or type(value) is int:
+        return float(value)
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        return None
+    return float(value)
+
+
+def whole_number(value: object) -> int | None:
+    """``value`` as an int if it is an integer (not ``bool``; numpy integers included)."""
+    if type(value) is int:
+        return value
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+        return None
+    return operator.index(value)
+
+
 def _seconds_arg_to_ns(value: object, what: str) -> int:
     """Convert a ``seconds=`` constructor argument (int or float, not bool, not Duration)."""
     if type(value) is float:
@@ -213,6 +280,14 @@ def _time_range_error(ns: int) -> InvalidArgumentError:
     if ns < 0:
         return InvalidArgumentError(f"Time must not be negative, got {ns} ns")
     return _overflow("Time", ns, 0)
+
+
+def format_time_range_error(what: str, ns: int) -> str:
+    """The message for a sim time ``ns`` outside ``[0, MAX_TIME_NS]``."""
+    return (
+        f"{what} would reach {ns} ns, outside sim time's range [0, {_I64_MAX}] ns "
+        "(64-bit nanoseconds, about 292 years); use a shorter duration or an earlier time"
+    )
 
 
 def _check_time_ns(ns: int) -> int:

@@ -26,6 +26,7 @@ import evclock
 from evclock import (
     SIM,
     ClockJumped,
+    ClockMismatchError,
     Duration,
     InvalidArgumentError,
     InvalidTypeError,
@@ -1103,7 +1104,7 @@ def test_reset_and_time_arguments_without_a_loop(client: int) -> None:
     ):
         source.reset_simulation(start=-1)
     with raises_exactly(
-        InvalidArgumentError, "reset_simulation() start must be a sim time, got a steady time"
+        ClockMismatchError, "reset_simulation() start must be a sim time, got a steady time"
     ):
         source.reset_simulation(start=Time(1, clock_type=evclock.STEADY))
 

@@ -429,8 +429,13 @@ def test_follower_honours_pacing(endpoint: str, outside: Any) -> None:
 def test_sim_driver_refuses_an_external_source(endpoint: str, outside: Any) -> None:
     source = start_follower(endpoint, Feed(outside), 0)
     try:
+
+        async def drive() -> None:
+            async with evclock.SimDriver(source):
+                pass
+
         with pytest.raises(evclock.SimDriverError, match="which SimDriver cannot host yet"):
-            evclock.SimDriver(source)
+            asyncio.run(drive())
     finally:
         source.close()
 

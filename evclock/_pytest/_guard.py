@@ -11,7 +11,7 @@ from collections.abc import Callable, Coroutine
 from typing import TYPE_CHECKING, Any, Final, Literal, TypeVar
 
 from .._errors import EvClockError, SimTimeLimitError
-from .._loop import _SLEEP, SimEventLoop
+from .._loop import SimEventLoop
 from ._budget import BUDGET_HINT, WallTimeBudgetError, WallTimeBudgetInterrupt
 from ._describe import describe_tasks, format_suspended_stack
 
@@ -116,10 +116,7 @@ def _would_deadlock(loop: asyncio.AbstractEventLoop) -> bool:
         return False
     if loop._ready or loop._holds or len(loop._io_map) > 1:
         return False
-    for _, _, kind, obj in loop._scheduled:
-        if (not obj.done()) if kind == _SLEEP else (not obj._cancelled):
-            return False
-    return True
+    return not loop._core.has_pending()
 
 
 # The names ``evclock_test`` and ``_run_guarded`` are hidden from task descriptions

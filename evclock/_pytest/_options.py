@@ -9,7 +9,7 @@ from typing import Final
 
 import pytest
 
-from .._loop import DEFAULT_STALL_TIMEOUT, _check_stall_timeout
+from .._loop import DEFAULT_STALL_TIMEOUT, check_stall_timeout
 from .._pacing import check_rtf
 from .._runner import _start_ns, resolve_use_sim_time
 from .._time import Time
@@ -127,7 +127,7 @@ def marker_options(item: pytest.Item, defaults: Options) -> Options:
                 options = dataclasses.replace(options, sim_timeout=seconds)
     if "stall_timeout" in merged:
         try:
-            stall = _check_stall_timeout(merged["stall_timeout"])
+            stall = check_stall_timeout(merged["stall_timeout"])
         except (TypeError, ValueError) as exc:
             raise ValueError(f"evclock(stall_timeout=...): {exc}") from None
         options = dataclasses.replace(options, stall_timeout=stall)

@@ -68,6 +68,7 @@ class RemoteClockSource(TimeSource):
     def __init__(self, address: str | Address) -> None:
         addr = address if isinstance(address, Address) else parse_address(address)
         self._address = addr
+        self._loop: Any = None  # the SimEventLoop this source drives (set by attach)
         self.name = addr.name or _default_name()
         self.mode = addr.mode
         self._lockstep = addr.mode == "lockstep"
@@ -165,12 +166,16 @@ class RemoteClockSource(TimeSource):
     def attach(self, loop: Any) -> None:
         from .._loop import SimEventLoop
 
-        if not isinstance(loop, SimEventLoop):
+        # The host is the kernel of the loop this source drives; the socket is served by
+        # that loop (add_reader), so only a SimEventLoop can host a clock-server link.
+        event_loop = getattr(loop, "host", None)
+        if not isinstance(event_loop, SimEventLoop):
             raise InvalidTypeError(
                 "a RemoteClockSource drives a SimEventLoop (evclock.run(main(), clock=...)); "
-                f"got {type(loop).__name__}"
+                f"got {type(event_loop).__name__}"
             )
         super().attach(loop)
+        self._loop = event_loop
 
     @property
     def now_ns(self) -> int:

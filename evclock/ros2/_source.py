@@ -118,6 +118,7 @@ class Ros2ClockSource(TimeSource):
         self._wake_lock = threading.Lock()
         self._wake_pending = False
         self._loop_wakeable = False
+        self._loop: Any = None  # the SimEventLoop this source drives (set by attach)
         self._session: Any = open_session(self._connect, listen)
         try:
             zid = str(self._session.zid())
@@ -180,6 +181,21 @@ class Ros2ClockSource(TimeSource):
 
     # ------------------------------------------------------------------ the contract
 
+    def attach(self, loop: Any) -> None:
+        from .._errors import SimDriverError
+        from .._loop import SimEventLoop
+
+        # The host is the kernel of the loop this source drives; Zenoh's arrivals wake that
+        # loop with call_soon_threadsafe, so only a SimEventLoop hosts a /clock follower.
+        event_loop = getattr(loop, "host", None)
+        if not isinstance(event_loop, SimEventLoop):
+            raise SimDriverError(
+                f"{self.describe()} follows an outside clock, which SimDriver cannot host "
+                "yet; run the program with evclock.run(main(), source=...) instead"
+            )
+        super().attach(loop)
+        self._loop = event_loop
+
     def advance(self, target_ns: int | None, gate: Gate) -> int:
         self._loop_wakeable = True  # from now on the loop is running: wake it on arrival
         jumped = self._drain()
@@ -237,7 +253,7 @@ class Ros2ClockSource(TimeSource):
                     continue
                 self._wake_pending = True
             try:
-                loop.call_soon_threadsafe(self._drain_woken)  # type: ignore[attr-defined]
+                loop.call_soon_threadsafe(self._drain_woken)
             except RuntimeError:
                 return  # the loop closed under us: nobody is following any more
 
@@ -264,7 +280,9 @@ class Ros2ClockSource(TimeSource):
                 self._now = time_ns  # not running yet: the start follows the newest time
             elif time_ns < self._now:
                 # The simulator went back (a reset): a jump, with evclock's jump policy.
-                loop._jump_time(self._now, time_ns, self._assign)
+                host = self._host
+                assert host is not None
+                host.jump(self._now, time_ns, self._assign)
                 jumped = True
             self._latest = time_ns
         return jumped

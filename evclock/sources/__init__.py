@@ -1,7 +1,8 @@
 """Time sources for the simulation loop."""
 
 from ._base import Gate, SourceHost, TimeSource
-from ._pybullet import PyBulletTimeSource, StepHook, exact_time_step
+from ._pybullet import PyBulletTimeSource
+from ._stepping import StepHook, SteppingTimeSource, exact_time_step
 from ._virtual import VirtualTimeSource
 
 __all__ = [
@@ -9,6 +10,7 @@ __all__ = [
     "SourceHost",
     "PyBulletTimeSource",
     "StepHook",
+    "SteppingTimeSource",
     "TimeSource",
     "VirtualTimeSource",
     "exact_time_step",

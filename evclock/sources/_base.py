@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import abc
 import asyncio
-from collections.abc import Callable, Sized
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol
 
 if TYPE_CHECKING:
@@ -18,31 +18,40 @@ Gate = Callable[[int], bool] | None
 
 
 class SourceHost(Protocol):
-    """What a time source needs from whatever drives it: a :class:`~evclock.SimEventLoop`,
-    or a :class:`~evclock.SimDriver` on a loop evclock does not own."""
-
-    #: Sim time as the host publishes it; a source stepping several increments per advance
-    #: writes each new time here before its hooks and the next gate call.
-    _now_ns: int
+    """What a time source may use of the simulation kernel that drives it (the
+    :class:`~evclock._core.SimCore` of a :class:`~evclock.SimEventLoop` or of a
+    :class:`~evclock.SimDriver`). The source owns time: the kernel only ever asks it to
+    advance and uses what it returns, or learns of a jump through :meth:`jump`."""
 
     @property
-    def now_ns(self) -> int: ...
+    def now_ns(self) -> int:
+        """Sim time as the kernel last took it from the source."""
+        ...
 
     @property
     def clock(self) -> SimClock:
         """The sim clock tasks on this host read."""
         ...
 
-    @property
-    def _ready(self) -> Sized:
-        """Non-empty (truthy) once a task became runnable: a stepping source stops then."""
+    def stepped_to(self, now_ns: int) -> None:
+        """Publish an intermediate time during a multi-increment advance (before hooks run
+        and before the next gate call): hooks, predicates and pacing read the clock."""
         ...
 
-    def _jump_time(
-        self, before_ns: int, after_ns: int, assign: Callable[[int], None]
-    ) -> TimeJump: ...
+    def time_arrived(self) -> None:
+        """An ``external`` source received news from outside (call it from its reader
+        callback): the host asks it to advance again at once."""
+        ...
 
-    def _runs_on(self, loop: asyncio.AbstractEventLoop) -> bool:
+    def work_ready(self) -> bool:
+        """True once a task became runnable: a stepping source stops stepping then."""
+        ...
+
+    def jump(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
+        """Move time discontinuously; ``assign(after_ns)`` is called to set the source's time."""
+        ...
+
+    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` are on this host's sim time."""
         ...
 
@@ -52,43 +61,47 @@ class SourceHost(Protocol):
 
 
 class TimeSource(abc.ABC):
-    """Owns simulation time for one :class:`~evclock.SimEventLoop`.
+    """Owns simulation time for one host (a :class:`~evclock.SimEventLoop` or a
+    :class:`~evclock.SimDriver`).
 
-    The loop asks the source to advance only when every task waits. A source either jumps
-    (discrete-event: :class:`VirtualTimeSource`) or moves in whole steps of a physics engine
-    (:class:`~evclock.PyBulletTimeSource`).
+    The host's kernel asks the source to advance only when every task waits, and takes the
+    time it returns. A source either jumps (discrete-event: :class:`VirtualTimeSource`),
+    moves in whole steps of an engine (:class:`SteppingTimeSource`, e.g.
+    :class:`~evclock.PyBulletTimeSource`) or follows time from outside (``external``).
     """
 
-    #: True when time can move with nothing scheduled (physics keeps stepping); False when an
-    #: idle program with nothing scheduled is a deadlock.
+    #: True when time can move with nothing scheduled (physics keeps stepping, an outside
+    #: clock goes on); False when an idle program with nothing scheduled is a deadlock.
     free_running: bool = False
 
-    #: True when advancing is a pure jump to the target with no side effects (virtual time):
-    #: the loop then moves time itself and reads it back through ``loop.now_ns``.
-    discrete_event: bool = False
-
-    #: True when time comes from outside the process (a clock server, a ROS 2 /clock):
-    #: ``advance`` never blocks and may return the unchanged time ("waiting for the
-    #: outside"); the host then waits for I/O instead of spinning or reporting a deadlock.
+    #: True when time comes from outside the process (another simulation, a ROS 2 /clock):
+    #: :meth:`advance` never blocks and may return the time unchanged ("no news yet"); the
+    #: host then waits for I/O - the source's messages arrive through the loop (a reader
+    #: registered with ``loop.add_reader``, or ``loop.call_soon_threadsafe`` from a foreign
+    #: thread), which then calls ``host.time_arrived()`` - and asks again (also every 50 ms
+    #: of wall time, so that the source can check its own deadline). Liveness is the
+    #: source's job: it raises an
+    #: :class:`~evclock.EvClockError` from ``advance`` (or its reader callback) when the
+    #: outside is lost. An external source is ``free_running``: idle is not a deadlock.
     external: bool = False
 
-    _loop: SourceHost | None = None
+    _host: SourceHost | None = None
 
     def attach(self, loop: SourceHost) -> None:
         """Called once by the loop (or driver) that this source will drive."""
-        if self._loop is not None and self._loop is not loop:
+        if self._host is not None and self._host is not loop:
             from .._errors import EvClockError
 
             raise EvClockError(
                 f"{type(self).__name__} is already attached to another loop; "
                 "create one time source per loop"
             )
-        self._loop = loop
+        self._host = loop
 
     def detach(self) -> None:
         """Called by a host that stops driving this source (a stopped SimDriver); the
         source keeps its time and may be attached to a new host."""
-        self._loop = None
+        self._host = None
 
     @property
     @abc.abstractmethod
@@ -100,13 +113,14 @@ class TimeSource(abc.ABC):
         """Move time toward ``target_ns`` (None: free-run one increment) and return the new time.
 
         Before every increment to a time ``t`` call ``gate(t)`` (unless ``gate`` is None); if
-        it returns False, stop without moving. Stop as well once a task became ready (a
-        step hook woke one). A source that moves in several increments within one call must
-        publish each new time to the loop (``loop._now_ns = t``) before the next ``gate``
-        call or hook: pacing, ``step_until`` and the clock read the loop's time.
+        it returns False, stop without moving. Stop as well once a task became ready
+        (``host.work_ready()``: a step hook woke one). A source that moves in several
+        increments within one call publishes each new time (``host.stepped_to(t)``) before
+        the next ``gate`` call or hook: pacing, ``step_until`` and the clock read it.
 
         The returned time may be before ``target_ns`` (the gate said no, or a step hook woke
-        a task) or after it (steps quantise time up to a step boundary).
+        a task) or after it (steps quantise time up to a step boundary). An ``external``
+        source returns at most ``target_ns``, and may return the time unchanged.
         """
 
     def describe(self) -> str:

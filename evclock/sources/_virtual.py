@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from .._errors import InvalidArgumentError, InvalidTypeError
+from .._time import MAX_TIME_NS, format_time_range_error, whole_number
 from ._base import Gate, TimeSource
 
 
@@ -14,50 +15,47 @@ class VirtualTimeSource(TimeSource):
     """
 
     free_running = False
-    discrete_event = True
 
     def __init__(self, start_ns: int = 0) -> None:
-        if type(start_ns) is not int:
+        start = whole_number(start_ns)
+        if start is None:
             raise InvalidTypeError(
                 f"start_ns must be an int number of nanoseconds, got {type(start_ns).__name__}"
             )
-        if start_ns < 0:
+        if start < 0:
             raise InvalidArgumentError(f"start_ns must not be negative, got {start_ns}")
-        self._now = start_ns
+        if start > MAX_TIME_NS:
+            raise InvalidArgumentError(format_time_range_error("start_ns", start))
+        self._now = start
 
     @property
     def now_ns(self) -> int:
-        # Once attached, the loop advances virtual time itself (discrete_event).
-        loop = self._loop
-        return self._now if loop is None else loop.now_ns
+        return self._now
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
-        now = self.now_ns  # the loop may have moved time itself since (discrete_event)
-        if target_ns is not None and target_ns > now and (gate is None or gate(target_ns)):
+        if target_ns is not None and target_ns > self._now and (gate is None or gate(target_ns)):
             self._now = target_ns
-            return target_ns
-        return now
+        return self._now
 
     def set_time(self, new_ns: int) -> None:
         """Move time to ``new_ns`` (backwards or forwards) as a jump, like a simulator reset.
 
         Jump handlers run and pending sim-time sleeps are woken with :class:`ClockJumped`.
         """
-        if type(new_ns) is not int or new_ns < 0:
+        if whole_number(new_ns) is None:
+            raise InvalidTypeError(
+                f"set_time() needs an int number of nanoseconds, got {type(new_ns).__name__}"
+            )
+        new_ns = int(new_ns)
+        if not 0 <= new_ns <= MAX_TIME_NS:
             raise InvalidArgumentError(
                 f"set_time() needs a non-negative int of nanoseconds, got {new_ns!r}"
             )
-        loop = self._loop
-        if loop is None:
+        host = self._host
+        if host is None:
             self._now = new_ns
             return
-        loop._jump_time(loop.now_ns, new_ns, self._assign)
-
-    def detach(self) -> None:
-        loop = self._loop
-        if loop is not None:
-            self._now = loop.now_ns  # the host moved time itself: keep where it got to
-        super().detach()
+        host.jump(self._now, new_ns, self._assign)
 
     def _assign(self, new_ns: int) -> None:
         self._now = new_ns
