@@ -87,3 +87,8 @@ class PhysicsError(EvClockError, RuntimeError):
 
 class SimTimeLimitError(EvClockError):
     """A run or a test exceeded its sim-time limit."""
+
+
+class MissingExtraError(EvClockError, ImportError):
+    """An optional dependency is not installed; the message names the extra that installs it
+    (``pip install 'evclock[pybullet]'``)."""

@@ -43,14 +43,22 @@ import pytest
 
 from ._clock import Clock, WallClock, _attached, attach_clock
 from ._errors import DeadlockError, EvClockError
+from ._extras import import_extra
 from ._loop import SimEventLoop
-from ._pytest._budget import Budget, WallTimeBudgetError, WallTimeBudgetInterrupt, budget_errors
+from ._pytest._budget import (
+    Budget,
+    WallTimeBudgetError,
+    budget_errors,
+    default_timeout_of,
+    hard_limit,
+)
 from ._pytest._describe import explain_deadlock
 from ._pytest._guard import guard, wrong_loop_message
 from ._pytest._options import DEFAULT_WALL_TIMEOUT, marker_options
 from ._pytest._runner import RUNNER_FIXTURE, Runner, ensure_pybullet_first, wrap_async_fixture
 from ._pytest._selection import (
     EVCLOCK_LOOP_FACTORY_NAME,
+    asyncio_loop_scope,
     kind_of,
     locate_test_function,
     wants_evclock,
@@ -62,7 +70,6 @@ __all__ = [
     "EVCLOCK_LOOP_FACTORY_NAME",
     "PyBulletWorld",
     "WallTimeBudgetError",
-    "WallTimeBudgetInterrupt",
     "evclock_anyio_backend",
     "evclock_clock",
     "evclock_loop",
@@ -145,8 +152,8 @@ def pytest_configure(config: pytest.Config) -> None:
         session.asyncio_hooked = True
 
 
-def pytest_report_header(config: pytest.Config) -> str:
-    """One line: the time base and the default budgets."""
+def pytest_report_header(config: pytest.Config) -> list[str]:
+    """The time base and the default budgets; who stops a test its loop cannot."""
     options = session_of(config).defaults
 
     def seconds(value: float | None) -> str:
@@ -154,29 +161,64 @@ def pytest_report_header(config: pytest.Config) -> str:
 
     if options.wall:
         why = "--evclock-wall" if config.getoption("evclock_wall") else "EVCLOCK_USE_SIM_TIME"
-        return (
+        lines = [
             f"evclock: wall time ({why}), wall-timeout={seconds(options.wall_timeout)}, "
             f"sim-timeout={seconds(options.sim_timeout)}"
+        ]
+    else:
+        rtf = "none" if options.rtf is None else f"{options.rtf:g}"
+        lines = [
+            f"evclock: sim time, rtf={rtf}, wall-timeout={seconds(options.wall_timeout)}, "
+            f"sim-timeout={seconds(options.sim_timeout)}"
+        ]
+    if options.wall_timeout is not None and not config.pluginmanager.hasplugin("timeout"):
+        lines.append(
+            "evclock: pytest-timeout is not installed: a test blocked in synchronous code "
+            "fails only once it returns to its loop (pip install 'evclock[pytest]')"
         )
-    rtf = "none" if options.rtf is None else f"{options.rtf:g}"
-    return (
-        f"evclock: sim time, rtf={rtf}, wall-timeout={seconds(options.wall_timeout)}, "
-        f"sim-timeout={seconds(options.sim_timeout)}"
-    )
+    return lines
 
 
-@pytest.hookimpl(wrapper=True)
+@pytest.hookimpl(wrapper=True, tryfirst=True)
 def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, object, object]:
-    """Track the running test (loop factories read its options) and end its budget."""
+    """Track the running test (loop factories read its options), back its wall-time budget
+    with pytest-timeout, and end the budget."""
     session = session_of(item.config)
     session.current_item = item
+    _back_budget_with_pytest_timeout(item, session)
     try:
         return (yield)
     finally:
         state = state_of(item)
-        if state is not None and state.budget is not None:
-            state.budget.finish()
+        if state is not None:
+            if state.budget is not None:
+                state.budget.finish()
+            if state.early_loop is not None:  # made for pytest-asyncio, which never asked
+                state.early_loop.close()
         session.current_item = None
+
+
+def _back_budget_with_pytest_timeout(item: pytest.Item, session: Session) -> None:
+    """Give an evclock test a pytest-timeout limit a little above its wall-time budget, so that
+    a test its loop cannot stop (blocked in synchronous code) is stopped all the same - unless
+    the test has its own timeout marker or pytest-timeout's default is stricter."""
+    if not (
+        isinstance(item, pytest.Function)
+        and item.config.pluginmanager.hasplugin("timeout")
+        and item.get_closest_marker("timeout") is None
+        and wants_evclock(item)
+    ):
+        return
+    try:
+        wall_timeout = marker_options(item, session.defaults).wall_timeout
+    except ValueError:
+        return  # setup reports it
+    if wall_timeout is None:
+        return
+    limit = hard_limit(wall_timeout)
+    default = default_timeout_of(item.config)
+    if default is None or default > limit:
+        item.add_marker(pytest.mark.timeout(limit))
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -211,12 +253,34 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
 
 @pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """Tell, next to a failure, that the wall-time budget had expired (when it is not the
+    budget's own error that failed the test: pytest-timeout's, typically)."""
+    report = yield
+    state = state_of(item)
+    budget = state.budget if state is not None else None
+    if (
+        budget is not None
+        and report.failed
+        and not (call.excinfo is not None and call.excinfo.errisinstance(WallTimeBudgetError))
+    ):
+        note = budget.blocked_note()
+        if note is not None:
+            report.sections.append(("evclock wall-time budget", note))
+    return report
+
+
+@pytest.hookimpl(wrapper=True)
 def pytest_runtest_teardown(item: pytest.Item) -> Generator[None, object, object]:
     """End the wall-time budget once the test's fixtures are torn down."""
     state = state_of(item)
     try:
         if state is None:
             return (yield)
+        if state.budget is not None:
+            state.budget.enter_phase("teardown")
         with budget_errors(state):
             return (yield)
     finally:
@@ -231,6 +295,8 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
     state = state_of(item)
     if state is None or not isinstance(item, pytest.Function):
         return (yield)
+    if state.budget is not None:
+        state.budget.enter_phase("call")
     if not state.is_async:
         with budget_errors(state):  # a sync test driving the loop itself
             return (yield)
@@ -318,9 +384,7 @@ def _loop_of_test(request: pytest.FixtureRequest) -> asyncio.AbstractEventLoop:
         )
     ensure_pybullet_first(request)
     if state.kind == "asyncio":
-        scope = getattr(item, "_loop_scope", "function")
-        asyncio_runner: asyncio.Runner = request.getfixturevalue(f"_{scope}_scoped_runner")
-        return asyncio_runner.get_loop()
+        return session_of(request.config).asyncio_test_loop(state)
     if state.kind == "anyio":
         anyio_loop: asyncio.AbstractEventLoop = request.getfixturevalue(_ANYIO_LOOP_FIXTURE)
         return anyio_loop
@@ -421,7 +485,7 @@ def evclock_pybullet(request: pytest.FixtureRequest) -> Iterator[PyBulletWorld]:
         raise EvClockError("evclock_pybullet is a function-scoped fixture of an evclock test")
     if state.options.wall:
         pytest.skip("evclock_pybullet needs sim time; --evclock-wall runs tests on wall time")
-    loop_scope = getattr(state.item, "_loop_scope", "function")
+    loop_scope = asyncio_loop_scope(state.item)
     if state.kind == "asyncio" and loop_scope != "function":
         raise EvClockError(
             f"evclock_pybullet needs a loop of its own, but this test shares a {loop_scope}-"
@@ -436,9 +500,8 @@ def evclock_pybullet(request: pytest.FixtureRequest) -> Iterator[PyBulletWorld]:
         raise EvClockError(
             "evclock(start=...) applies to virtual time only; a PyBullet world starts at 0"
         )
-    import pybullet
-    import pybullet_data
-
+    pybullet = import_extra("pybullet", "pybullet", needed_by="the evclock_pybullet fixture")
+    pybullet_data = import_extra("pybullet_data", "pybullet", needed_by="evclock_pybullet")
     source = PyBulletTimeSource.connect()
     try:
         client = source.client

@@ -21,6 +21,7 @@ from .._errors import (
     NotRunningError,
     PhysicsError,
 )
+from .._extras import import_extra
 from .._time import SIM, Duration, Time, to_nanoseconds
 from ._base import Gate, TimeSource
 
@@ -37,9 +38,7 @@ _STEP_HOOK_WHEN = ("before", "after")
 
 
 def _pybullet() -> Any:
-    import pybullet
-
-    return pybullet
+    return import_extra("pybullet", "pybullet", needed_by="PyBulletTimeSource")
 
 
 def exact_time_step(dt: float) -> Fraction:
