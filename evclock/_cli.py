@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -332,7 +333,7 @@ def run_command(
                 sim, until=until, rtf=pace, seed=seed, gui=gui, wall=wall, progress=progress
             )
     except EvClockError as exc:
-        console.print(f"[red]error:[/red] {exc}")
+        console.print(f"[red]error:[/red] {escape(str(exc))}")  # [extra] is not markup
         raise typer.Exit(2) from None
     render_report(report, console)
     if json_out is not None:

@@ -10,6 +10,9 @@ from typer.testing import CliRunner
 
 from evclock._cli import app, parse_rtf, run_scenario
 
+# Every scenario is a PyBullet world.
+pytestmark = pytest.mark.pybullet
+
 runner = CliRunner()
 
 

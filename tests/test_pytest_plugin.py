@@ -1032,6 +1032,7 @@ async def test_ball_drop(evclock_pybullet, evclock_clock):
 """
 
 
+@pytest.mark.pybullet
 @pytest.mark.parametrize("runner", list(RUNNERS))
 def test_pybullet_world_is_stepped_by_the_loop(pytester: pytest.Pytester, runner: str) -> None:
     pytester.makepyfile(PYBULLET_TEST.format(header=HEADER, marks=RUNNERS[runner]))

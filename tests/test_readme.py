@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 README = Path(__file__).resolve().parent.parent / "README.md"
 
 
@@ -34,6 +36,7 @@ def test_quickstart_runs_as_written() -> None:
     assert out[-1] == "5.000000000 s (sim)"
 
 
+@pytest.mark.pybullet
 def test_pybullet_snippet_runs_as_written() -> None:
     code = snippet("## PyBullet as the clock")  # at rtf=1.0, as written: about a second
     out = [line for line in run(code).splitlines() if " s: z = " in line or "landed" in line]
