@@ -44,3 +44,22 @@ def test_pybullet_snippet_runs_as_written() -> None:
     assert out[10].startswith("0.50 s: z = ")
     assert out[-1].startswith("landed at ")
     assert float(out[10].split("z = ")[1].split()[0]) < 1.0  # it fell
+
+
+def test_set_up_commands_fit_a_user_and_match_ci() -> None:
+    """The main-job command installs only what the main job needs; the test command installs
+    the test extra itself and is what .ci/run runs on every Python."""
+    text = README.read_text()
+    setup = text[text.index("## Set-up") : text.index("## Quickstart")]
+    main_job, tests = (block.strip() for block in re.findall(r"```bash\n(.*?)```", setup, re.S))
+    assert main_job == (
+        'python3 -m venv .venv && .venv/bin/pip install -e ".[pybullet]" '
+        "&& .venv/bin/evclock run kuka"
+    )
+    assert tests == '.venv/bin/pip install -e ".[test]" && .venv/bin/python -m pytest'
+    ci = (README.parent / ".ci" / "run").read_text()
+    assert 'pip install --quiet -e ".[$3]"' in ci
+    assert 'fresh_venv .venv "$PY311" test,lint\n' in ci
+    assert 'fresh_venv ".venv-$version" "${!python_var}" test\n' in ci
+    assert '".venv-$version/bin/python" -m pytest\n' in ci
+    assert ci.rstrip().endswith(".venv/bin/python -m pytest")
