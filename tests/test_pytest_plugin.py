@@ -492,6 +492,46 @@ def test_pytest_asyncio_module_loop_scope_shares_sim_time(pytester: pytest.Pytes
     run(pytester).assert_outcomes(passed=2)
 
 
+def test_pytest_asyncio_test_loop_from_a_sync_fixture(pytester: pytest.Pytester) -> None:
+    """evclock_loop set up before pytest-asyncio makes its loop: evclock makes it then, and
+    hands that same loop to pytest-asyncio (public hook only, no private runner fixture)."""
+    pytester.makepyfile(
+        """
+        import asyncio
+        import pytest
+        import evclock
+
+        @pytest.fixture
+        def loop_seen_early(evclock_loop):
+            return evclock_loop
+
+        @pytest.mark.asyncio
+        @pytest.mark.evclock(start=3)
+        async def test_same_loop(loop_seen_early, evclock_loop, evclock_clock):
+            assert asyncio.get_running_loop() is loop_seen_early is evclock_loop
+            assert isinstance(evclock_loop, evclock.SimEventLoop)
+            assert evclock_clock.now().seconds == 3
+
+        @pytest.mark.asyncio(loop_factories=["asyncio", "evclock"])
+        async def test_variants(request):
+            if isinstance(asyncio.get_running_loop(), evclock.SimEventLoop):
+                request.getfixturevalue("evclock_loop")
+            else:
+                with pytest.raises(evclock.EvClockError, match="another loop factory's loop"):
+                    request.getfixturevalue("evclock_loop")
+        """
+    )
+    pytester.makeconftest(
+        """
+        import asyncio
+
+        def pytest_asyncio_loop_factories(config, item):
+            return {"asyncio": asyncio.new_event_loop}
+        """
+    )
+    run(pytester, "-v").assert_outcomes(passed=3)
+
+
 def test_pytest_asyncio_selection_must_include_evclock(pytester: pytest.Pytester) -> None:
     pytester.makepyfile(
         """
