@@ -23,6 +23,9 @@ for per-test options whichever runs it: ``rtf``, ``start``, ``stall_timeout``, `
 (a wall-clock budget for setup, call and teardown) and ``sim_timeout`` (a sim-time limit for the
 test function). A deadlock fails at once with :class:`~evclock.DeadlockError` naming the waiting
 tasks; an overrun fails with :class:`WallTimeBudgetError` or :class:`~evclock.SimTimeLimitError`.
+The wall-time budget never raises into arbitrary code: it cancels the test on its loop, and a
+test blocked in synchronous code is stopped by pytest-timeout, which evclock arms a grace period
+after the budget (see :mod:`evclock._pytest._budget`).
 
 Command line and ini: ``--evclock-wall`` (run evclock tests on wall time: a plain asyncio loop on
 which :func:`evclock.clock` is the wall clock), ``--evclock-rtf`` / ``evclock_rtf``,
