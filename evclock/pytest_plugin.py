@@ -10,7 +10,7 @@ the marker or by requesting one of the fixtures::
 
 Who runs an opted-in ``async def`` test:
 
-* **pytest-asyncio** (1.x), when it handles the test (``@pytest.mark.asyncio`` or auto mode):
+* **pytest-asyncio** (>= 1.4), when it handles the test (``@pytest.mark.asyncio`` or auto mode):
   evclock answers its ``pytest_asyncio_loop_factories`` hook with an ``"evclock"`` loop factory;
   ``@pytest.mark.asyncio(loop_factories=["evclock"])`` selects it explicitly.
 * **anyio**'s plugin, when the test uses ``anyio_backend``: make that fixture return the
@@ -36,6 +36,7 @@ which :func:`evclock.clock` is the wall clock), ``--evclock-rtf`` / ``evclock_rt
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import functools
 import inspect
@@ -50,6 +51,7 @@ from ._extras import import_extra
 from ._loop import SimEventLoop
 from ._pytest._budget import (
     Budget,
+    PytestTimeoutHooks,
     WallTimeBudgetError,
     budget_errors,
     default_timeout_of,
@@ -149,6 +151,9 @@ def pytest_configure(config: pytest.Config) -> None:
     )
     session = Session(config)
     config.stash[SESSION] = session
+    timeout_hook = getattr(config.hook, "pytest_timeout_set_timer", None)
+    if timeout_hook is not None and timeout_hook.has_spec():
+        config.pluginmanager.register(PytestTimeoutHooks(), "evclock-timeout")
     caller = getattr(config.hook, "pytest_asyncio_loop_factories", None)
     if caller is not None and caller.has_spec():
         config.pluginmanager.register(_AsyncioHooks(session), "evclock-asyncio")
@@ -238,8 +243,8 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     if kind == "asyncio" and not session.asyncio_hooked:
         pytest.fail(
             f"{item.nodeid}: pytest-asyncio runs this test but has no "
-            "pytest_asyncio_loop_factories hook; upgrade pytest-asyncio, or drop the asyncio "
-            "marker to let evclock run the test",
+            "pytest_asyncio_loop_factories hook; upgrade it (pip install 'pytest-asyncio>=1.4'), "
+            "or drop the asyncio marker to let evclock run the test",
             pytrace=False,
         )
     state = ItemState(item, options, kind)
@@ -303,10 +308,31 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
     if not state.is_async:
         with budget_errors(state):  # a sync test driving the loop itself
             return (yield)
+    try:
+        with _guarded_test_function(item, state):
+            return (yield)
+    except DeadlockError as exc:
+        if state.call is None:
+            raise
+        raise explain_deadlock(exc, state.call) from None
+
+
+@contextlib.contextmanager
+def _guarded_test_function(item: pytest.Function, state: ItemState) -> Iterator[None]:
+    """Make the plugin that runs an async test run it under evclock's guard.
+
+    evclock's own runner applies the guard itself (``pytest_pyfunc_call``): nothing changes.
+    pytest-asyncio and anyio call the test function they find on the item, and hypothesis
+    the one it keeps as ``inner_test`` (the attribute it documents for this purpose): for the
+    duration of the call, that attribute is the guarded function, then the original again.
+    """
     holder, name = locate_test_function(item)
+    if state.kind == "evclock" and holder is item:
+        yield
+        return
     original = getattr(holder, name)
     wrapped: Callable[..., Any] = guard(original, state)
-    if state.kind == "evclock" and holder is not item:  # hypothesis: run each example on our loop
+    if state.kind == "evclock":  # hypothesis: run each example on our loop
         runner: Runner = item.funcargs[RUNNER_FIXTURE]  # type: ignore[assignment]
         guarded = wrapped
 
@@ -317,11 +343,7 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
         wrapped = evclock_example
     setattr(holder, name, wrapped)
     try:
-        return (yield)
-    except DeadlockError as exc:
-        if state.call is None:
-            raise
-        raise explain_deadlock(exc, state.call) from None
+        yield
     finally:
         setattr(holder, name, original)
 
@@ -337,7 +359,7 @@ def pytest_pyfunc_call(pyfuncitem: pytest.Function) -> bool | None:
     runner: Runner = pyfuncitem.funcargs[RUNNER_FIXTURE]  # type: ignore[assignment]
     funcargs = pyfuncitem.funcargs
     testargs = {arg: funcargs[arg] for arg in pyfuncitem._fixtureinfo.argnames}
-    runner.run(pyfuncitem.obj(**testargs))
+    runner.run(guard(pyfuncitem.obj, state)(**testargs))
     return True
 
 

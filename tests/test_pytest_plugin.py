@@ -62,6 +62,28 @@ def test_marker_and_options_are_registered(pytester: pytest.Pytester) -> None:
     )
 
 
+def test_a_project_using_the_plugin_sees_no_warning(pytester: pytest.Pytester) -> None:
+    """A project with evclock[pytest] (pytest, pytest-timeout; no pytest-asyncio) and no
+    configuration at all: no warning summary, in a separate process as a user runs it."""
+    pytester.makeini("[pytest]\n")
+    pytester.makepyfile(
+        """
+        import asyncio
+        import pytest
+
+        @pytest.mark.evclock
+        async def test_a_minute(evclock_clock):
+            await asyncio.sleep(60)
+            assert evclock_clock.now().seconds == 60
+        """
+    )
+    result = pytester.runpytest_subprocess(
+        "-p", "no:cacheprovider", "-p", "no:asyncio", "-p", "no:anyio", "-p", "no:hypothesispytest"
+    )
+    result.assert_outcomes(passed=1, warnings=0)
+    assert "warnings summary" not in result.stdout.str()
+
+
 @pytest.mark.parametrize(
     ("args", "header"),
     [
@@ -820,6 +842,39 @@ async def test_swallows_once():
             "the test was still running after 0.2 s of wall time (at sim time 0 s) and was "
             "cancelled. Its tasks were at:",
         ]
+    )
+
+
+def test_pytest_timeouts_timer_thread_does_not_hide_a_paused_deadlock(
+    pytester: pytest.Pytester,
+) -> None:
+    """pytest-timeout's thread method runs a timer thread during each test; it can never
+    resume a paused loop, so the paused loop is still a deadlock (not a wait for that thread).
+    A separate process: if it hung, its own 60 s limit would end it, not this session."""
+    pytester.makepyfile(
+        """
+        import asyncio
+        import pytest
+
+        @pytest.mark.evclock
+        async def test_paused(evclock_loop):
+            evclock_loop.pause()
+            await asyncio.sleep(1)
+        """
+    )
+    result = pytester.runpytest_subprocess(
+        "-p",
+        "no:cacheprovider",
+        "-p",
+        "no:asyncio",
+        "--timeout=60",
+        "-o",
+        "timeout_method=thread",
+        timeout=120,
+    )
+    result.assert_outcomes(failed=1)
+    result.stdout.fnmatch_lines(
+        ["E *DeadlockError: the loop is paused and nothing could ever resume it*"]
     )
 
 

@@ -22,7 +22,7 @@ import contextlib
 import os
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from typing import TYPE_CHECKING, Final
 
 import pytest
@@ -186,6 +186,25 @@ class Budget:
             "with pytest-timeout's 'Timeout' instead, it did not get back to its loop in time: "
             "synchronous code blocked the loop, or the test swallowed CancelledError."
         )
+
+
+class PytestTimeoutHooks:
+    """evclock's side of pytest-timeout, registered only when pytest-timeout is installed."""
+
+    @pytest.hookimpl(wrapper=True)
+    def pytest_timeout_set_timer(
+        self, item: pytest.Item, settings: object
+    ) -> Generator[None, object, object]:
+        """pytest-timeout's ``thread`` method starts a timer thread per test: declare it one
+        that never calls a loop back, so that a paused loop nobody else can resume is still
+        reported as a deadlock (it would otherwise wait for that thread)."""
+        before = threading.enumerate()
+        try:
+            return (yield)
+        finally:
+            for thread in threading.enumerate():
+                if thread not in before:
+                    mark_internal(thread)
 
 
 @contextlib.contextmanager

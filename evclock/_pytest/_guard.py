@@ -181,6 +181,6 @@ def wrong_loop_message(state: ItemState, loop: asyncio.AbstractEventLoop) -> str
     if state.kind == "asyncio":
         return (
             f"{what}: pytest-asyncio did not use evclock's loop factory (it needs "
-            "pytest-asyncio >= 1.x with the pytest_asyncio_loop_factories hook)"
+            "pytest-asyncio >= 1.4, which has the pytest_asyncio_loop_factories hook)"
         )
     return what
