@@ -12,6 +12,9 @@ import pytest
 pytest_plugins = ["pytester"]
 
 NO_OTHER_PLUGINS = ("-p", "no:asyncio", "-p", "no:anyio")
+#: Where the budget's cancellation on the loop is the subject: no pytest-timeout hard stop
+#: (budget + 1 s) that a loaded machine could reach first.
+NO_HARD_STOP = ("-p", "no:timeout")
 
 # Inner runs turn warnings into errors too: the plugin must stay warning-free. (An in-process
 # run cannot assertion-rewrite the installed plugin, which this session imported already: an
@@ -768,7 +771,7 @@ async def test_next_one_is_fine():
     await asyncio.sleep(1)
 """
     pytester.makepyfile(test_busy=source)
-    result = run(pytester, "--evclock-wall-timeout=0.2")
+    result = run(pytester, "--evclock-wall-timeout=0.2", *NO_HARD_STOP)
     result.assert_outcomes(failed=1, passed=1)
     result.stdout.fnmatch_lines(
         [
@@ -833,7 +836,7 @@ async def test_swallows_once():
         await asyncio.sleep(0)  # busy again
 """
     pytester.makepyfile(test_swallows=source)
-    result = run(pytester)
+    result = run(pytester, *NO_HARD_STOP)
     result.assert_outcomes(failed=1)
     result.stdout.fnmatch_lines(
         [
@@ -887,7 +890,7 @@ import pytest
 
 @pytest.mark.evclock(wall_timeout=0.2)
 async def test_blocks_then_waits(evclock_clock):
-    time.sleep(0.5)  # blocks the loop past the budget
+    time.sleep(2)  # blocks the loop well past the budget
     await evclock_clock.sleep(1)
 """
     pytester.makepyfile(test_blocks=source)
@@ -965,7 +968,7 @@ def test_sync_test_driving_the_loop(evclock_loop):
     evclock_loop.run_until_complete(spin())
 """
     pytester.makepyfile(test_slow_parts=source)
-    result = run(pytester, *NO_OTHER_PLUGINS)
+    result = run(pytester, *NO_OTHER_PLUGINS, *NO_HARD_STOP)
     result.assert_outcomes(failed=1, errors=1)
     result.stdout.fnmatch_lines(
         [
