@@ -66,6 +66,7 @@ def page(server: BackgroundServer) -> Iterator[Page]:
         try:
             page = browser.new_page(viewport={"width": 1280, "height": 1100})
             page.set_default_timeout(TIMEOUT_MS)
+            expect.set_options(timeout=TIMEOUT_MS)  # expect() has its own 5 s default
             errors: list[str] = []
             page.on("pageerror", lambda error: errors.append(str(error)))
             page.goto(server.url + "/")
