@@ -42,7 +42,8 @@ _PUBLIC_MODULE: Final = "evclock.pytest_plugin"
 #: at least 1 s and at most 10 s (wall seconds).
 _GRACE_MIN, _GRACE_MAX = 1.0, 10.0
 
-#: How often a test that swallows the budget's cancellation is cancelled again (wall seconds).
+#: How often a test that swallows the budget's cancellation is cancelled again (wall seconds):
+#: often enough to stop it well before pytest-timeout's hard stop (at least 1 s later).
 _RECANCEL_PERIOD: Final = 0.1
 
 BUDGET_HINT: Final = (
@@ -88,7 +89,6 @@ class Budget:
 
     def __init__(self, seconds: float, state: ItemState, session: Session) -> None:
         self.seconds = seconds
-        self._state = state
         self._session = session
         self._cond = threading.Condition()
         self._deadline = time.monotonic() + seconds
@@ -131,7 +131,7 @@ class Budget:
                     self._cond.wait(self._deadline - now)
                     continue
                 self._expire()
-                # A test that swallows the cancellation is cancelled again, each grace period.
+                # A test that swallows the cancellation is cancelled again, every 0.1 s.
                 self._deadline = now + _RECANCEL_PERIOD
 
     def _expire(self) -> None:
