@@ -46,8 +46,9 @@ class Episode:
     scenario: Scenario
     started_at: float
     """Sim seconds at the start."""
-    first_rate: int
-    """Index of this episode's first rate in ``clock.rates``."""
+    earlier_rates: tuple[Rate, ...]
+    """``clock.rates`` when the episode started (the clock keeps the latest loop of each name,
+    in the place of the first one: an index into it cannot tell this episode's loops)."""
     ended_at: float | None = None
     outcome: str = "running"
     """``running``, ``success``, ``failure``, ``timeout`` or ``error``."""
@@ -182,7 +183,7 @@ class SimService:
 
     def _new_episode(self, number: int, seed: int, scenario: Scenario) -> Episode:
         clock = self.driver.clock
-        return Episode(number, seed, scenario, clock.now().seconds, len(clock.rates))
+        return Episode(number, seed, scenario, clock.now().seconds, clock.rates)
 
     async def _run_episodes(self) -> None:
         try:
@@ -229,8 +230,10 @@ class SimService:
 
     def current_rates(self) -> tuple[Rate, ...]:
         """The rate loops of the current episode, in creation order."""
-        first = self._episode.first_rate if self._episode is not None else 0
-        return self.driver.clock.rates[first:]
+        earlier = self._episode.earlier_rates if self._episode is not None else ()
+        return tuple(
+            rate for rate in self.driver.clock.rates if not any(rate is old for old in earlier)
+        )
 
     # ------------------------------------------------------------------ history
 
