@@ -102,7 +102,8 @@ class ScenarioError(EvClockError, RuntimeError):
 
 
 class MissingExtraError(EvClockError, ImportError):
-    """An optional feature was used without its extra installed; the message names the extra."""
+    """An optional dependency is not installed; the message names the extra that installs it
+    (``pip install 'evclock[pybullet]'``)."""
 
 
 class TraceError(EvClockError, ValueError):

@@ -10,7 +10,7 @@ the marker or by requesting one of the fixtures::
 
 Who runs an opted-in ``async def`` test:
 
-* **pytest-asyncio** (1.x), when it handles the test (``@pytest.mark.asyncio`` or auto mode):
+* **pytest-asyncio** (>= 1.4), when it handles the test (``@pytest.mark.asyncio`` or auto mode):
   evclock answers its ``pytest_asyncio_loop_factories`` hook with an ``"evclock"`` loop factory;
   ``@pytest.mark.asyncio(loop_factories=["evclock"])`` selects it explicitly.
 * **anyio**'s plugin, when the test uses ``anyio_backend``: make that fixture return the
@@ -23,6 +23,9 @@ for per-test options whichever runs it: ``rtf``, ``start``, ``stall_timeout``, `
 (a wall-clock budget for setup, call and teardown) and ``sim_timeout`` (a sim-time limit for the
 test function). A deadlock fails at once with :class:`~evclock.DeadlockError` naming the waiting
 tasks; an overrun fails with :class:`WallTimeBudgetError` or :class:`~evclock.SimTimeLimitError`.
+The wall-time budget never raises into arbitrary code: it cancels the test on its loop, and a
+test blocked in synchronous code is stopped by pytest-timeout, which evclock arms a grace period
+after the budget (see :mod:`evclock._pytest._budget`).
 
 Command line and ini: ``--evclock-wall`` (run evclock tests on wall time: a plain asyncio loop on
 which :func:`evclock.clock` is the wall clock), ``--evclock-rtf`` / ``evclock_rtf``,
@@ -33,6 +36,7 @@ which :func:`evclock.clock` is the wall clock), ``--evclock-rtf`` / ``evclock_rt
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
 import functools
 import inspect
@@ -43,14 +47,23 @@ import pytest
 
 from ._clock import Clock, WallClock, _attached, attach_clock
 from ._errors import DeadlockError, EvClockError
+from ._extras import import_extra
 from ._loop import SimEventLoop
-from ._pytest._budget import Budget, WallTimeBudgetError, WallTimeBudgetInterrupt, budget_errors
+from ._pytest._budget import (
+    Budget,
+    PytestTimeoutHooks,
+    WallTimeBudgetError,
+    budget_errors,
+    default_timeout_of,
+    hard_limit,
+)
 from ._pytest._describe import explain_deadlock
 from ._pytest._guard import guard, wrong_loop_message
 from ._pytest._options import DEFAULT_WALL_TIMEOUT, marker_options
 from ._pytest._runner import RUNNER_FIXTURE, Runner, ensure_pybullet_first, wrap_async_fixture
 from ._pytest._selection import (
     EVCLOCK_LOOP_FACTORY_NAME,
+    asyncio_loop_scope,
     kind_of,
     locate_test_function,
     wants_evclock,
@@ -62,7 +75,6 @@ __all__ = [
     "EVCLOCK_LOOP_FACTORY_NAME",
     "PyBulletWorld",
     "WallTimeBudgetError",
-    "WallTimeBudgetInterrupt",
     "evclock_anyio_backend",
     "evclock_clock",
     "evclock_loop",
@@ -139,14 +151,17 @@ def pytest_configure(config: pytest.Config) -> None:
     )
     session = Session(config)
     config.stash[SESSION] = session
+    timeout_hook = getattr(config.hook, "pytest_timeout_set_timer", None)
+    if timeout_hook is not None and timeout_hook.has_spec():
+        config.pluginmanager.register(PytestTimeoutHooks(), "evclock-timeout")
     caller = getattr(config.hook, "pytest_asyncio_loop_factories", None)
     if caller is not None and caller.has_spec():
         config.pluginmanager.register(_AsyncioHooks(session), "evclock-asyncio")
         session.asyncio_hooked = True
 
 
-def pytest_report_header(config: pytest.Config) -> str:
-    """One line: the time base and the default budgets."""
+def pytest_report_header(config: pytest.Config) -> list[str]:
+    """The time base and the default budgets; who stops a test its loop cannot."""
     options = session_of(config).defaults
 
     def seconds(value: float | None) -> str:
@@ -154,29 +169,64 @@ def pytest_report_header(config: pytest.Config) -> str:
 
     if options.wall:
         why = "--evclock-wall" if config.getoption("evclock_wall") else "EVCLOCK_USE_SIM_TIME"
-        return (
+        lines = [
             f"evclock: wall time ({why}), wall-timeout={seconds(options.wall_timeout)}, "
             f"sim-timeout={seconds(options.sim_timeout)}"
+        ]
+    else:
+        rtf = "none" if options.rtf is None else f"{options.rtf:g}"
+        lines = [
+            f"evclock: sim time, rtf={rtf}, wall-timeout={seconds(options.wall_timeout)}, "
+            f"sim-timeout={seconds(options.sim_timeout)}"
+        ]
+    if options.wall_timeout is not None and not config.pluginmanager.hasplugin("timeout"):
+        lines.append(
+            "evclock: pytest-timeout is not installed: a test blocked in synchronous code "
+            "fails only once it returns to its loop (pip install 'evclock[pytest]')"
         )
-    rtf = "none" if options.rtf is None else f"{options.rtf:g}"
-    return (
-        f"evclock: sim time, rtf={rtf}, wall-timeout={seconds(options.wall_timeout)}, "
-        f"sim-timeout={seconds(options.sim_timeout)}"
-    )
+    return lines
 
 
-@pytest.hookimpl(wrapper=True)
+@pytest.hookimpl(wrapper=True, tryfirst=True)
 def pytest_runtest_protocol(item: pytest.Item) -> Generator[None, object, object]:
-    """Track the running test (loop factories read its options) and end its budget."""
+    """Track the running test (loop factories read its options), back its wall-time budget
+    with pytest-timeout, and end the budget."""
     session = session_of(item.config)
     session.current_item = item
+    _back_budget_with_pytest_timeout(item, session)
     try:
         return (yield)
     finally:
         state = state_of(item)
-        if state is not None and state.budget is not None:
-            state.budget.finish()
+        if state is not None:
+            if state.budget is not None:
+                state.budget.finish()
+            if state.early_loop is not None:  # made for pytest-asyncio, which never asked
+                state.early_loop.close()
         session.current_item = None
+
+
+def _back_budget_with_pytest_timeout(item: pytest.Item, session: Session) -> None:
+    """Give an evclock test a pytest-timeout limit a little above its wall-time budget, so that
+    a test its loop cannot stop (blocked in synchronous code) is stopped all the same - unless
+    the test has its own timeout marker or pytest-timeout's default is stricter."""
+    if not (
+        isinstance(item, pytest.Function)
+        and item.config.pluginmanager.hasplugin("timeout")
+        and item.get_closest_marker("timeout") is None
+        and wants_evclock(item)
+    ):
+        return
+    try:
+        wall_timeout = marker_options(item, session.defaults).wall_timeout
+    except ValueError:
+        return  # setup reports it
+    if wall_timeout is None:
+        return
+    limit = hard_limit(wall_timeout)
+    default = default_timeout_of(item.config)
+    if default is None or default > limit:
+        item.add_marker(pytest.mark.timeout(limit))
 
 
 @pytest.hookimpl(tryfirst=True)
@@ -193,8 +243,8 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     if kind == "asyncio" and not session.asyncio_hooked:
         pytest.fail(
             f"{item.nodeid}: pytest-asyncio runs this test but has no "
-            "pytest_asyncio_loop_factories hook; upgrade pytest-asyncio, or drop the asyncio "
-            "marker to let evclock run the test",
+            "pytest_asyncio_loop_factories hook; upgrade it (pip install 'pytest-asyncio>=1.4'), "
+            "or drop the asyncio marker to let evclock run the test",
             pytrace=False,
         )
     state = ItemState(item, options, kind)
@@ -211,12 +261,34 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
 
 
 @pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """Tell, next to a failure, that the wall-time budget had expired (when it is not the
+    budget's own error that failed the test: pytest-timeout's, typically)."""
+    report = yield
+    state = state_of(item)
+    budget = state.budget if state is not None else None
+    if (
+        budget is not None
+        and report.failed
+        and not (call.excinfo is not None and call.excinfo.errisinstance(WallTimeBudgetError))
+    ):
+        note = budget.blocked_note()
+        if note is not None:
+            report.sections.append(("evclock wall-time budget", note))
+    return report
+
+
+@pytest.hookimpl(wrapper=True)
 def pytest_runtest_teardown(item: pytest.Item) -> Generator[None, object, object]:
     """End the wall-time budget once the test's fixtures are torn down."""
     state = state_of(item)
     try:
         if state is None:
             return (yield)
+        if state.budget is not None:
+            state.budget.enter_phase("teardown")
         with budget_errors(state):
             return (yield)
     finally:
@@ -231,13 +303,36 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
     state = state_of(item)
     if state is None or not isinstance(item, pytest.Function):
         return (yield)
+    if state.budget is not None:
+        state.budget.enter_phase("call")
     if not state.is_async:
         with budget_errors(state):  # a sync test driving the loop itself
             return (yield)
+    try:
+        with _guarded_test_function(item, state):
+            return (yield)
+    except DeadlockError as exc:
+        if state.call is None:
+            raise
+        raise explain_deadlock(exc, state.call) from None
+
+
+@contextlib.contextmanager
+def _guarded_test_function(item: pytest.Function, state: ItemState) -> Iterator[None]:
+    """Make the plugin that runs an async test run it under evclock's guard.
+
+    evclock's own runner applies the guard itself (``pytest_pyfunc_call``): nothing changes.
+    pytest-asyncio and anyio call the test function they find on the item, and hypothesis
+    the one it keeps as ``inner_test`` (the attribute it documents for this purpose): for the
+    duration of the call, that attribute is the guarded function, then the original again.
+    """
     holder, name = locate_test_function(item)
+    if state.kind == "evclock" and holder is item:
+        yield
+        return
     original = getattr(holder, name)
     wrapped: Callable[..., Any] = guard(original, state)
-    if state.kind == "evclock" and holder is not item:  # hypothesis: run each example on our loop
+    if state.kind == "evclock":  # hypothesis: run each example on our loop
         runner: Runner = item.funcargs[RUNNER_FIXTURE]  # type: ignore[assignment]
         guarded = wrapped
 
@@ -248,11 +343,7 @@ def pytest_runtest_call(item: pytest.Item) -> Generator[None, object, object]:
         wrapped = evclock_example
     setattr(holder, name, wrapped)
     try:
-        return (yield)
-    except DeadlockError as exc:
-        if state.call is None:
-            raise
-        raise explain_deadlock(exc, state.call) from None
+        yield
     finally:
         setattr(holder, name, original)
 
@@ -268,7 +359,7 @@ def pytest_pyfunc_call(pyfuncitem: pytest.Function) -> bool | None:
     runner: Runner = pyfuncitem.funcargs[RUNNER_FIXTURE]  # type: ignore[assignment]
     funcargs = pyfuncitem.funcargs
     testargs = {arg: funcargs[arg] for arg in pyfuncitem._fixtureinfo.argnames}
-    runner.run(pyfuncitem.obj(**testargs))
+    runner.run(guard(pyfuncitem.obj, state)(**testargs))
     return True
 
 
@@ -318,9 +409,7 @@ def _loop_of_test(request: pytest.FixtureRequest) -> asyncio.AbstractEventLoop:
         )
     ensure_pybullet_first(request)
     if state.kind == "asyncio":
-        scope = getattr(item, "_loop_scope", "function")
-        asyncio_runner: asyncio.Runner = request.getfixturevalue(f"_{scope}_scoped_runner")
-        return asyncio_runner.get_loop()
+        return session_of(request.config).asyncio_test_loop(state)
     if state.kind == "anyio":
         anyio_loop: asyncio.AbstractEventLoop = request.getfixturevalue(_ANYIO_LOOP_FIXTURE)
         return anyio_loop
@@ -421,7 +510,7 @@ def evclock_pybullet(request: pytest.FixtureRequest) -> Iterator[PyBulletWorld]:
         raise EvClockError("evclock_pybullet is a function-scoped fixture of an evclock test")
     if state.options.wall:
         pytest.skip("evclock_pybullet needs sim time; --evclock-wall runs tests on wall time")
-    loop_scope = getattr(state.item, "_loop_scope", "function")
+    loop_scope = asyncio_loop_scope(state.item)
     if state.kind == "asyncio" and loop_scope != "function":
         raise EvClockError(
             f"evclock_pybullet needs a loop of its own, but this test shares a {loop_scope}-"
@@ -436,9 +525,8 @@ def evclock_pybullet(request: pytest.FixtureRequest) -> Iterator[PyBulletWorld]:
         raise EvClockError(
             "evclock(start=...) applies to virtual time only; a PyBullet world starts at 0"
         )
-    import pybullet
-    import pybullet_data
-
+    pybullet = import_extra("pybullet", "pybullet", needed_by="the evclock_pybullet fixture")
+    pybullet_data = import_extra("pybullet_data", "pybullet", needed_by="evclock_pybullet")
     source = PyBulletTimeSource.connect()
     try:
         client = source.client

@@ -1,11 +1,41 @@
-"""Shared helpers for the test suite."""
+"""Shared set-up of the test suite: the repository root on sys.path (for ``examples``), and
+the PyBullet rule.
+
+PyBullet publishes wheels for CPython 3.11 only, so the ``test`` extra installs it there and
+nowhere else. Tests that need it are skipped where it is missing - whole modules through
+``pytest.importorskip("pybullet")``, single tests through ``@pytest.mark.pybullet`` - and a
+missing PyBullet on 3.11 is an error, so that the full suite can never skip them silently.
+"""
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 from pathlib import Path
 
-# sims/ and examples/ are plain folders at the repository root, not installed packages.
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
+
+HAVE_PYBULLET = importlib.util.find_spec("pybullet") is not None
+_PYBULLET_WHEELS = sys.version_info < (3, 12)  # as the test extra's marker says
+_SKIP_REASON = "PyBullet is not installed: pip install 'evclock[pybullet]'"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if _PYBULLET_WHEELS and not HAVE_PYBULLET:
+        raise pytest.UsageError(
+            "PyBullet is missing, and on this Python the full suite needs it: "
+            "pip install -e '.[test]' installs it"
+        )
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    if HAVE_PYBULLET:
+        return
+    skip = pytest.mark.skip(reason=_SKIP_REASON)
+    for item in items:
+        if item.get_closest_marker("pybullet") is not None:
+            item.add_marker(skip)

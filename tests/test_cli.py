@@ -17,6 +17,9 @@ from typer.testing import CliRunner
 import evclock
 from evclock._cli import app, parse_rtf, progress_bar, run_scenario
 
+# Every scenario is a PyBullet world.
+pytestmark = pytest.mark.pybullet
+
 runner = CliRunner()
 
 

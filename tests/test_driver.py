@@ -1032,6 +1032,7 @@ def test_control_and_run_until_errors(run: Callable[[Awaitable[Any]], Any]) -> N
 # ------------------------------------------------------------------ PyBullet
 
 
+@pytest.mark.pybullet
 def test_pybullet_source_steps_in_lockstep(run: Callable[[Awaitable[Any]], Any]) -> None:
     async def main() -> list[object]:
         source = evclock.PyBulletTimeSource.connect()
@@ -1068,6 +1069,7 @@ def test_pybullet_source_steps_in_lockstep(run: Callable[[Awaitable[Any]], Any])
     assert run(main()) == [Time(seconds=1), 240, [100], True, 61, 241, 0]
 
 
+@pytest.mark.pybullet
 def test_pybullet_paused_steps_whole_physics_steps(run: Callable[[Awaitable[Any]], Any]) -> None:
     async def main() -> list[object]:
         source = evclock.PyBulletTimeSource.connect()
@@ -1094,6 +1096,7 @@ def test_pybullet_paused_steps_whole_physics_steps(run: Callable[[Awaitable[Any]
     assert run(main()) == [5, True, 24, True]
 
 
+@pytest.mark.pybullet
 def test_pybullet_free_runs_and_is_paced_step_by_step() -> None:
     async def main() -> list[object]:
         loop = fake_loop()
@@ -1155,6 +1158,7 @@ def test_notebook_style_example_runs_on_a_loop_it_does_not_own() -> None:
     assert proc.stdout == NOTEBOOK_STYLE
 
 
+@pytest.mark.pybullet
 def test_pybullet_wait_until_and_sleep_steps_under_the_driver(
     run: Callable[[Coroutine[Any, Any, T]], T],
 ) -> None:

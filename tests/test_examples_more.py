@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -37,6 +39,7 @@ def test_pacing_example_pauses_steps_and_resumes_exactly() -> None:
     ]
 
 
+@pytest.mark.pybullet
 def test_reset_example_wakes_sleepers_and_re_anchors_the_rate() -> None:
     lines = run_example("reset_and_jumps.py")
     assert lines[4:] == [

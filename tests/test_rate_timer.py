@@ -288,17 +288,19 @@ def test_rates_and_timers_work_on_wall_time() -> None:
         hits: list[int] = []
         timer = clock.timer(0.005, lambda: hits.append(1))
         indices = []
-        async for tick in clock.rate(200):
-            indices.append(tick.index)
-            if tick.index == 3:
-                break
+        async with asyncio.timeout(60):  # wall seconds: a bound, never reached when it works
+            async for tick in clock.rate(200):
+                indices.append(tick.index)
+                if tick.index >= 3:  # a loaded machine may skip periods (the skip policy)
+                    break
         timer.cancel()
         await asyncio.sleep(0)
         return indices, len(hits)
 
     indices, hits = evclock.run(main(), use_sim_time=False)
     assert indices[0] == 0
-    assert indices[-1] == 3
+    assert indices == sorted(set(indices))
+    assert indices[-1] >= 3
     assert hits >= 1
 
 

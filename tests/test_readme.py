@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 README = Path(__file__).resolve().parent.parent / "README.md"
 
 
@@ -34,6 +36,7 @@ def test_quickstart_runs_as_written() -> None:
     assert out[-1] == "5.000000000 s (sim)"
 
 
+@pytest.mark.pybullet
 def test_pybullet_snippet_runs_as_written() -> None:
     code = snippet("## PyBullet as the clock")  # at rtf=1.0, as written: about a second
     out = [line for line in run(code).splitlines() if " s: z = " in line or "landed" in line]
@@ -58,3 +61,22 @@ def test_scenario_snippet_runs_with_the_command(tmp_path: Path) -> None:
         assert result.returncode == 0, result.stdout + result.stderr
         assert "reach (seed " in result.stdout
         assert "SUCCESS" in result.stdout
+
+
+def test_set_up_commands_fit_a_user_and_match_ci() -> None:
+    """The main-job command installs only what the main job needs; the test command installs
+    the test extra itself and is what .ci/run runs on every Python."""
+    text = README.read_text()
+    setup = text[text.index("## Set-up") : text.index("## Quickstart")]
+    main_job, tests = (block.strip() for block in re.findall(r"```bash\n(.*?)```", setup, re.S))
+    assert main_job == (
+        'python3 -m venv .venv && .venv/bin/pip install -e ".[pybullet]" '
+        "&& .venv/bin/evclock run kuka"
+    )
+    assert tests == '.venv/bin/pip install -e ".[test]" && .venv/bin/python -m pytest'
+    ci = (README.parent / ".ci" / "run").read_text()
+    assert 'pip install --quiet -e ".[$3]"' in ci
+    assert 'fresh_venv .venv "$PY311" test,lint\n' in ci
+    assert 'fresh_venv ".venv-$version" "${!python_var}" test\n' in ci
+    assert '".venv-$version/bin/python" -m pytest\n' in ci
+    assert ci.rstrip().endswith(".venv/bin/python -m pytest")

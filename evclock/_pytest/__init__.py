@@ -8,6 +8,6 @@
 * ``_state``: what the plugin knows per pytest run (and the loops it makes) and per test.
 * ``_runner``: evclock's own runner for the tests no other plugin runs, and their async fixtures.
 * ``_guard``: the guard around a running async test: its loop, its sim-time limit, its reports.
-* ``_budget``: the wall-time budget: a watchdog thread, and the errors it raises.
+* ``_budget``: the wall-time budget: a watchdog that cancels on the loop, pytest-timeout behind it.
 * ``_describe``: where a test is, for reports: its tasks, a stack, a traceback.
 """

@@ -1,21 +1,35 @@
-"""The wall-time budget of a test (``wall_timeout``): a watchdog thread that stops a test which
-overruns it, and the errors that report it."""
+"""The wall-time budget of a test (``wall_timeout``): what stops a test that overruns it, and the
+error that reports it.
+
+Two layers, neither of which ever raises an exception into arbitrary code:
+
+* **On the loop.** A watchdog thread waits for the deadline, then hands the expiry to the test's
+  loop as a thread-safe callback, which the loop runs between two callbacks: it cancels the
+  test (or, in a fixture or a sync test driving the loop, every task of the loop), and the test
+  fails with :class:`WallTimeBudgetError` listing where each task waits.
+* **Outside the loop.** Code that blocks the loop (synchronous code) or ignores the cancellation
+  cannot be stopped safely from inside the process. That is pytest-timeout's job: when it is
+  installed, evclock gives each evclock test a pytest-timeout limit of the budget plus a grace
+  period (:func:`hard_limit`), unless a stricter one applies. pytest-timeout then fails the test
+  with every thread's stack (its ``signal`` method, the default on POSIX: the session goes on)
+  or dumps the stacks and ends the whole session (its ``thread`` method).
+"""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import ctypes
-import sys
+import os
 import threading
 import time
-from collections.abc import Iterator
-from types import FrameType
-from typing import TYPE_CHECKING, Any, Final
+from collections.abc import Generator, Iterator
+from typing import TYPE_CHECKING, Final
+
+import pytest
 
 from .._errors import EvClockError
 from .._threads import mark_internal
-from ._describe import describe_tasks, format_stack
+from ._describe import describe_tasks
 
 if TYPE_CHECKING:
     from ._guard import CallGuard
@@ -24,9 +38,14 @@ if TYPE_CHECKING:
 #: Where users import these from, and what reports name them by.
 _PUBLIC_MODULE: Final = "evclock.pytest_plugin"
 
-#: After a wall-time budget expires and the test was cancelled, how long (wall seconds, bounded
-#: by the budget itself) the loop gets to react before evclock interrupts its thread.
-_GRACE_MIN, _GRACE_MAX = 0.1, 2.0
+#: How long after the budget pytest-timeout stops a test the loop could not: the budget itself,
+#: at least 1 s and at most 10 s (wall seconds).
+_GRACE_MIN, _GRACE_MAX = 1.0, 10.0
+
+#: How often a test that swallows the budget's cancellation is cancelled again (wall seconds):
+#: often enough to stop it well before pytest-timeout's hard stop (at least 1 s later).
+_RECANCEL_PERIOD: Final = 0.1
+
 BUDGET_HINT: Final = (
     "Raise the budget with @pytest.mark.evclock(wall_timeout=...) or --evclock-wall-timeout "
     "(0 disables it)."
@@ -39,91 +58,56 @@ class WallTimeBudgetError(EvClockError, TimeoutError):
     __module__ = _PUBLIC_MODULE
 
 
-class WallTimeBudgetInterrupt(BaseException):
-    """Raised asynchronously in the test thread when a test overran its wall-time budget and
-    did not stop when cancelled (synchronous code blocked the event loop, or the test swallowed
-    ``CancelledError``).
-
-    It derives from ``BaseException`` so that ``except Exception`` in the code under test does
-    not swallow it; an ``async def`` test reports it as :class:`WallTimeBudgetError`.
-    """
-
-    __module__ = _PUBLIC_MODULE
-    message = "evclock: wall-time budget exceeded"
-
-    def __str__(self) -> str:
-        return str(self.args[0]) if self.args else self.message
+def hard_limit(seconds: float) -> float:
+    """The pytest-timeout limit that backs a wall-time budget of ``seconds``: the budget plus
+    a grace period for the cancelled test to unwind."""
+    return seconds + min(max(seconds, _GRACE_MIN), _GRACE_MAX)
 
 
-def _phase_codes() -> dict[Any, str]:
-    try:
-        from _pytest import runner
-    except ImportError:  # pragma: no cover - pytest always has it
-        return {}
-    return {
-        runner.pytest_runtest_setup.__code__: "setup",
-        runner.pytest_runtest_call.__code__: "call",
-        runner.pytest_runtest_teardown.__code__: "teardown",
-    }
-
-
-_PHASES: Final = _phase_codes()
-
-
-def _phase_of(frame: FrameType | None) -> str | None:
-    """The test phase (setup, call, teardown) a thread is in, from its stack; None between."""
-    while frame is not None:
-        phase = _PHASES.get(frame.f_code)
-        if phase is not None:
-            return phase
-        frame = frame.f_back
+def default_timeout_of(config: pytest.Config) -> float | None:
+    """The per-test limit pytest-timeout applies without a marker (its option, then the
+    ``PYTEST_TIMEOUT`` variable, then its ini key), None if none; pytest-timeout validates it."""
+    sources = (config.getoption("timeout", None), os.environ.get("PYTEST_TIMEOUT"))
+    for value in (*sources, config.getini("timeout")):
+        if value is None or value == "":
+            continue
+        try:
+            seconds = float(value)
+        except (TypeError, ValueError):
+            return None  # pytest-timeout reports the bad value itself
+        return seconds if seconds > 0 else None
     return None
-
-
-def _set_async_exc(thread_id: int, exc_type: type[BaseException] | None) -> None:
-    set_async_exc = ctypes.pythonapi.PyThreadState_SetAsyncExc
-    set_async_exc(ctypes.c_ulong(thread_id), ctypes.py_object(exc_type) if exc_type else None)
 
 
 class Budget:
     """A wall-time budget for one test (setup, call and teardown), watched by a daemon thread.
 
-    No signals: what happens when it expires depends on where the test is.
-
-    1. In the test function: the test task is cancelled through ``call_soon_threadsafe``,
-       which works however busy the test keeps the loop; in an async fixture, every task of
-       the running loop is (the fixture fails with :class:`WallTimeBudgetError`).
-    2. If the test does not stop (it swallows the cancellation) but the loop still runs
-       callbacks: :class:`WallTimeBudgetInterrupt` is raised in the test task, at the ``await``
-       where it waits (``except Exception`` and ``except CancelledError`` do not catch it).
-    3. If the loop does not run callbacks any more (synchronous code blocks it), or no loop
-       runs (a sync test or fixture): the exception is raised asynchronously in the test
-       thread, wherever it is.
-
-    Each step gets a grace period (the budget, at least 0.1 s, at most 2 s) to work.
+    At the deadline the watchdog hands the expiry to the loop (``call_soon_threadsafe``); on
+    the loop's thread, between two callbacks, the test function's task is cancelled (or every
+    task of the loop, when the budget expires in a fixture or a sync test driving the loop).
     """
 
     def __init__(self, seconds: float, state: ItemState, session: Session) -> None:
         self.seconds = seconds
-        self._grace = min(max(seconds, _GRACE_MIN), _GRACE_MAX)
-        self._state = state
         self._session = session
         self._cond = threading.Condition()
         self._deadline = time.monotonic() + seconds
         self._call: CallGuard | None = None
-        self._cancelled: CallGuard | None = None
-        self._interrupted: CallGuard | None = None
+        self._expired_phase: str | None = None
         self._tasks_cancelled = False
         self._where: tuple[str, ...] = ()
-        self._phase = ""
+        self._phase = "setup"
         self._finished = False
-        self._injected = False
-        self._thread_id = threading.get_ident()
         self._thread = threading.Thread(
             target=self._watch, name=f"evclock-budget[{state.item.name}]", daemon=True
         )
         mark_internal(self._thread)  # it never resumes a paused test's loop
         self._thread.start()
+
+    def enter_phase(self, phase: str) -> None:
+        """The test enters ``setup``, ``call`` or ``teardown`` (for the report)."""
+        with self._cond:
+            self._phase = phase
 
     def enter_call(self, call: CallGuard) -> None:
         with self._cond:
@@ -131,19 +115,12 @@ class Budget:
 
     def leave_call(self, call: CallGuard) -> None:
         with self._cond:
-            self._call = None
-            if call is self._cancelled:
-                # The test has been stopped: teardown gets a fresh budget.
-                self._deadline = time.monotonic() + self.seconds
-                self._cond.notify()
+            if self._call is call:
+                self._call = None
 
     def finish(self) -> None:
         with self._cond:
-            if self._finished:
-                return
             self._finished = True
-            if self._injected:
-                _set_async_exc(self._thread_id, None)  # drop an interrupt not delivered yet
             self._cond.notify()
 
     def _watch(self) -> None:
@@ -153,81 +130,81 @@ class Budget:
                 if now < self._deadline:
                     self._cond.wait(self._deadline - now)
                     continue
-                self._deadline = now + self._grace
-                self._act()
+                self._expire()
+                # A test that swallows the cancellation is cancelled again, every 0.1 s.
+                self._deadline = now + _RECANCEL_PERIOD
 
-    def _act(self) -> None:
+    def _expire(self) -> None:
+        """At the deadline (watchdog thread, lock held): hand the expiry to the loop(s)."""
+        if self._expired_phase is None:
+            self._expired_phase = self._phase
+        elif self._call is None:
+            return  # fixtures and sync tests: their tasks were cancelled once
         call = self._call
-        if call is not None and call is not self._cancelled:
-            self._cancelled = call  # 1. cancel the test task
+        if call is not None:
             call.request_expiry(self.seconds)
             return
-        if call is not None and call.reason is not None and call is not self._interrupted:
-            self._interrupted = call  # 2. the loop runs callbacks: raise in the task
-            call.request_interrupt(self.seconds)
-            return
-        frame = sys._current_frames().get(self._thread_id)
-        phase = _phase_of(frame)
-        if frame is None or phase is None:
-            return  # between phases: look again after the grace period
-        loops = [
-            loop
-            for loop in list(self._session.loops)
-            if getattr(loop, "_thread_id", None) == self._thread_id and not loop.is_closed()
-        ]
-        if call is None and loops and not self._tasks_cancelled:
-            self._tasks_cancelled = True  # 1. (fixtures) cancel every task of the loop
-            self._phase = phase
-            for loop in loops:
-                with contextlib.suppress(RuntimeError):
-                    loop.call_soon_threadsafe(self._cancel_tasks, loop)
-            return
-        # 3. raise in the test thread, wherever it is
-        if phase == "call" and call is not None:
-            detail = (
-                " and did not stop when cancelled: synchronous code blocks its event loop"
-                if call.reason is None
-                else " and did not stop when cancelled or interrupted"
-            )
-        else:
-            detail = "" if phase == "call" else f" (in {phase})"
-        message = (
-            f"evclock: wall-time budget exceeded: the test was still running after "
-            f"{self.seconds:g} s of wall time{detail}; evclock interrupted it in:\n"
-            f"{format_stack(frame)}\n{BUDGET_HINT}"
-        )
-        exc_type = type(
-            "WallTimeBudgetInterrupt",
-            (WallTimeBudgetInterrupt,),
-            {
-                "message": message,
-                "__module__": _PUBLIC_MODULE,
-                "__qualname__": "WallTimeBudgetInterrupt",
-            },
-        )
-        _set_async_exc(self._thread_id, exc_type)
-        self._injected = True
-        for loop in loops:  # wake a loop blocked in select()
-            with contextlib.suppress(RuntimeError):
-                loop.call_soon_threadsafe(_noop)
+        for loop in self._session.open_loops():
+            with contextlib.suppress(RuntimeError):  # closed meanwhile
+                loop.call_soon_threadsafe(self._cancel_tasks, loop)
 
     def _cancel_tasks(self, loop: asyncio.AbstractEventLoop) -> None:
-        """On the loop's thread: cancel what runs there (a fixture, or a sync test's run)."""
+        """On a loop's thread: cancel what runs there (a fixture, or a sync test's run)."""
+        with self._cond:
+            if self._finished:
+                return  # the test is over: this loop now runs another test
+            self._tasks_cancelled = True
         self._where += describe_tasks(loop, None)
         for task in asyncio.all_tasks(loop):
             task.cancel("evclock: wall-time budget exceeded")
+
+    @property
+    def expired(self) -> bool:
+        """Whether the deadline has passed (whatever happened then)."""
+        return self._expired_phase is not None
 
     def error_for(self, exc: BaseException) -> WallTimeBudgetError | None:
         """The report for a CancelledError that cancelling the loop's tasks caused, if so."""
         if not (self._tasks_cancelled and isinstance(exc, asyncio.CancelledError)):
             return None
         where = "\n".join(f"  {line}" for line in self._where) or "  (no task)"
-        phase = "" if self._phase == "call" else f" (in {self._phase})"
+        phase = self._expired_phase or "call"
+        within = "" if phase == "call" else f" (in {phase})"
         return WallTimeBudgetError(
             f"evclock: wall-time budget exceeded: the test was still running after "
-            f"{self.seconds:g} s of wall time{phase} and was cancelled. Its tasks were at:\n"
+            f"{self.seconds:g} s of wall time{within} and was cancelled. Its tasks were at:\n"
             f"{where}\n{BUDGET_HINT}"
         )
+
+    def blocked_note(self) -> str | None:
+        """For the report of a test the loop could not stop in time, what evclock saw."""
+        if not self.expired:
+            return None
+        return (
+            f"evclock: the wall-time budget ({self.seconds:g} s) expired in {self._expired_phase} "
+            "and the test was asked to stop between two callbacks of its loop; if it failed "
+            "with pytest-timeout's 'Timeout' instead, it did not get back to its loop in time: "
+            "synchronous code blocked the loop, or the test swallowed CancelledError."
+        )
+
+
+class PytestTimeoutHooks:
+    """evclock's side of pytest-timeout, registered only when pytest-timeout is installed."""
+
+    @pytest.hookimpl(wrapper=True)
+    def pytest_timeout_set_timer(
+        self, item: pytest.Item, settings: object
+    ) -> Generator[None, object, object]:
+        """pytest-timeout's ``thread`` method starts a timer thread per test: declare it one
+        that never calls a loop back, so that a paused loop nobody else can resume is still
+        reported as a deadlock (it would otherwise wait for that thread)."""
+        before = threading.enumerate()
+        try:
+            return (yield)
+        finally:
+            for thread in threading.enumerate():
+                if thread not in before:
+                    mark_internal(thread)
 
 
 @contextlib.contextmanager
@@ -241,7 +218,3 @@ def budget_errors(state: ItemState) -> Iterator[None]:
         if error is None:
             raise
         raise error.with_traceback(exc.__traceback__) from None
-
-
-def _noop() -> None:
-    pass

@@ -1,12 +1,11 @@
-"""Where a test is, told for its failure report: its loop's tasks (the test's own labelled),
-the stack of a thread or of a suspended coroutine, a traceback through the lines where a
-coroutine waits - leaving out the machinery of pytest, asyncio, anyio and evclock itself."""
+"""Where a test is, told for its failure report: its loop's tasks (the test's own labelled)
+and a traceback through the lines where a coroutine waits - leaving out the machinery of
+pytest, asyncio, anyio and evclock itself."""
 
 from __future__ import annotations
 
 import asyncio
 import os
-import traceback
 from types import FrameType, TracebackType
 from typing import TYPE_CHECKING, Any, Final
 
@@ -39,14 +38,6 @@ def describe_tasks(
     return _describe_loop_tasks(loop, labels=labels, hidden=_MACHINERY_CODE_NAMES)
 
 
-def format_suspended_stack(coro: object) -> str:
-    """The user-code lines where a suspended coroutine chain waits, formatted like a stack."""
-    frames = [f for f in coroutine_frames(coro) if _is_user_code(f)]
-    return "".join(
-        traceback.format_list(traceback.StackSummary.extract((f, f.f_lineno) for f in frames))
-    ).rstrip("\n")
-
-
 def _suspended_traceback(coro: object) -> TracebackType | None:
     """A traceback through the lines where a suspended coroutine chain waits (for reports)."""
     tb: TracebackType | None = None
@@ -75,15 +66,3 @@ def _is_machinery(path: str) -> bool:
 
 def _is_user_code(frame: FrameType) -> bool:
     return not _is_machinery(frame.f_code.co_filename)
-
-
-def format_stack(frame: FrameType, limit: int = 3) -> str:
-    """Where a thread is: its innermost frames up to the first of pytest's, asyncio's or
-    evclock's own (the innermost frame is always shown)."""
-    entries = traceback.extract_stack(frame)
-    shown = [entries[-1]]
-    for entry in reversed(entries[:-1]):
-        if len(shown) >= limit or _is_machinery(entry.filename):
-            break
-        shown.append(entry)
-    return "".join(traceback.format_list(shown[::-1])).rstrip("\n")

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any, Final, Literal, TypeVar
 
 from .._errors import EvClockError, SimTimeLimitError
 from .._loop import SimEventLoop
-from ._budget import BUDGET_HINT, WallTimeBudgetError, WallTimeBudgetInterrupt
-from ._describe import describe_tasks, format_suspended_stack
+from ._budget import BUDGET_HINT, WallTimeBudgetError
+from ._describe import describe_tasks
 
 if TYPE_CHECKING:
     from ._state import ItemState
@@ -42,37 +42,13 @@ class CallGuard:
         self.where: tuple[str, ...] = ()
         self.limit = 0.0
         self.at = 0.0
-        self.thrown = False
+        #: How many times the budgets cancelled the test's task.
+        self.cancels = 0
 
     def request_expiry(self, seconds: float) -> None:
         """From the watchdog thread: cancel the test on its loop's thread."""
         with contextlib.suppress(RuntimeError):  # the loop just closed
             self.loop.call_soon_threadsafe(self._expire, "wall", seconds)
-
-    def request_interrupt(self, seconds: float) -> None:
-        """From the watchdog thread: raise WallTimeBudgetInterrupt in the test task."""
-        with contextlib.suppress(RuntimeError):
-            self.loop.call_soon_threadsafe(self._interrupt, seconds)
-
-    def _interrupt(self, seconds: float) -> None:
-        task = self.task
-        if task.done():
-            return
-        where = format_suspended_stack(task.get_coro())
-        exc = WallTimeBudgetInterrupt(
-            f"evclock: wall-time budget exceeded: the test was still running after {seconds:g} s "
-            "of wall time and did not stop when cancelled: it swallows CancelledError; evclock "
-            f"interrupted it in:\n{where}\n{BUDGET_HINT}"
-        )
-        waiter = getattr(task, "_fut_waiter", None)
-        if waiter is None or waiter.done():
-            # The task is about to run again: raise at its suspension point now; the guard
-            # turns it into the failure and yields once, so the task resumes as scheduled.
-            self.thrown = True
-            with contextlib.suppress(BaseException):
-                task.get_coro().throw(exc)
-        elif not isinstance(waiter, asyncio.Task):
-            waiter.set_exception(exc)  # the task waits on this future: wake it with the error
 
     def sim_deadline(self, seconds: float) -> None:
         # Run after everything else due at the limit, then decide: a loop with nothing left to
@@ -84,8 +60,13 @@ class CallGuard:
             self._expire("sim", seconds)
 
     def _expire(self, reason: Literal["wall", "sim"], seconds: float) -> None:
-        if self.reason is not None or self.task.done():
+        if self.task.done():
             return
+        if self.reason is not None:  # the test swallowed the cancellation: cancel it again
+            self.cancels += 1
+            self.task.cancel(f"evclock: {self.reason}-time budget exceeded")
+            return
+        self.cancels = 1
         self.reason = reason
         self.limit = seconds
         self.at = self.loop.time()
@@ -160,24 +141,27 @@ async def _run_guarded(coro: Coroutine[Any, Any, _T], state: ItemState) -> _T:
     try:
         result = await coro
     except asyncio.CancelledError as exc:
-        if call.reason is not None and task.uncancel() <= cancelling:
+        if call.reason is not None and _uncancel(task, call.cancels) <= cancelling:
             # Keep the traceback through the test: the report shows where it was stopped.
             raise call.error().with_traceback(exc.__traceback__) from None
         raise
-    except WallTimeBudgetInterrupt as exc:
-        error = WallTimeBudgetError(str(exc)).with_traceback(exc.__traceback__)
-        if call.thrown:
-            await asyncio.sleep(0)  # thrown in from a callback: let the task resume first
-        raise error from None
     finally:
         if handle is not None:
             handle.cancel()
         if budget is not None:
             budget.leave_call(call)
     if call.reason is not None:  # the test swallowed our cancellation and then returned
-        task.uncancel()
+        _uncancel(task, call.cancels)
         raise call.error()
     return result
+
+
+def _uncancel(task: asyncio.Task[Any], times: int) -> int:
+    """Withdraw the budgets' cancellation requests; the number of requests left."""
+    left = task.cancelling()
+    for _ in range(times):
+        left = task.uncancel()
+    return left
 
 
 def wrong_loop_message(state: ItemState, loop: asyncio.AbstractEventLoop) -> str:
@@ -194,6 +178,6 @@ def wrong_loop_message(state: ItemState, loop: asyncio.AbstractEventLoop) -> str
     if state.kind == "asyncio":
         return (
             f"{what}: pytest-asyncio did not use evclock's loop factory (it needs "
-            "pytest-asyncio >= 1.x with the pytest_asyncio_loop_factories hook)"
+            "pytest-asyncio >= 1.4, which has the pytest_asyncio_loop_factories hook)"
         )
     return what

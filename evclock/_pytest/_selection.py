@@ -35,6 +35,20 @@ def asyncio_selection(item: pytest.Item) -> tuple[str, ...] | None:
     return tuple(str(name) for name in names)
 
 
+def asyncio_loop_scope(item: pytest.Item) -> str:
+    """The scope of the loop pytest-asyncio runs a test on, from its public configuration: the
+    closest asyncio marker's ``loop_scope``, else ``asyncio_default_test_loop_scope``, else
+    ``function``."""
+    mark = item.get_closest_marker("asyncio")
+    scope = mark.kwargs.get("loop_scope") or mark.kwargs.get("scope") if mark else None
+    if scope is None:
+        try:
+            scope = item.config.getini("asyncio_default_test_loop_scope") or None
+        except ValueError:  # pytest-asyncio is not installed
+            scope = None
+    return str(scope or "function")
+
+
 def wants_evclock(item: pytest.Item) -> bool:
     """Whether a test opted in: the marker, a loop fixture, or pytest-asyncio's selection."""
     if not isinstance(item, pytest.Function):

@@ -15,6 +15,7 @@ from fractions import Fraction
 from typing import TYPE_CHECKING, Any
 
 from .._errors import InvalidArgumentError, InvalidTypeError, PhysicsError
+from .._extras import import_extra
 from .._time import SIM, Duration, Time, to_sim_time_ns
 from ._stepping import SteppingTimeSource, format_seconds
 
@@ -25,9 +26,7 @@ _NS_PER_S = 1_000_000_000
 
 
 def _pybullet() -> Any:
-    import pybullet
-
-    return pybullet
+    return import_extra("pybullet", "pybullet", needed_by="PyBulletTimeSource")
 
 
 class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
