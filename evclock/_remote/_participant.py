@@ -404,6 +404,11 @@ class RemoteClockSource(TimeSource):
         if not data:
             self._lose(self._closed_by_server())
             return
+        if len(data) == proto.STAMP_SIZE and self._reader.between_frames:
+            length, kind, t_ns = proto.unpack_stamp(data)
+            if kind == proto.GRANT and length == proto.STAMP_SIZE - 4 and t_ns >= self._now:
+                self._granted = t_ns  # a round's GRANT alone: the hot path
+                return
         if self._waiting_since is not None:
             self._waiting_since = time.monotonic()  # the server is alive (keepalives included)
         try:
