@@ -294,7 +294,7 @@ class RemoteClockSource(TimeSource):
             raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
         self._check_usable()
         call_id = self._call_ids()
-        self._out += proto.call(call_id, service, bytes(data))
+        self._send(proto.call(call_id, service, bytes(data)))  # with the round's data, at once
         deadline = time.monotonic() + self._timeout
         sock = self._sock
         while call_id not in self._replies:
