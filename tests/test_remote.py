@@ -482,6 +482,27 @@ def test_whole_frames_one_or_several_per_read() -> None:
         reader.feed(b"\x00\x00\x00\x00D")
 
 
+def test_a_rounds_frames_unpack_whole_and_the_reader_says_when_it_holds_a_partial_one() -> None:
+    # The hot path of a round takes a read that is exactly one GRANT / DONE in one unpack.
+    assert len(proto.grant(7)) == proto.STAMP_SIZE
+    assert proto.unpack_stamp(proto.grant(7)) == (proto.STAMP_SIZE - 4, proto.GRANT, 7)
+    assert len(proto.done(7, 9)) == proto.DONE_SIZE
+    assert proto.unpack_done(proto.done(7, proto.NO_DEADLINE)) == (
+        proto.DONE_SIZE - 4,
+        proto.DONE,
+        7,
+        proto.NO_DEADLINE,
+    )
+    # A frame cut across reads: the next read, even of a DONE's size, is not a frame start.
+    reader = proto.Reader()
+    assert reader.between_frames
+    frame = proto.done(7, 9)
+    assert reader.feed(frame[:5]) == []
+    assert not reader.between_frames
+    assert reader.feed(frame[5:]) == [(proto.DONE, frame[5:])]
+    assert reader.between_frames
+
+
 def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Path) -> None:
     url = address(tmp_path)
     waiter = """
