@@ -1,9 +1,9 @@
 """The clock server: a simulation serves its sim time to processes that join it.
 
 It lives on the simulation's :class:`~evclock.SimEventLoop` and uses nothing but the loop's
-own machinery: sockets are registered with ``add_reader``; a lockstep participant that is
-working at time ``t`` holds sim time exactly like an executor job does (the loop's hold
-count), and its next deadline is an ordinary entry of the loop's timer heap. So physics
+own machinery: sockets are registered with ``add_reader``; while lockstep participants work
+at time ``t`` the server holds sim time exactly like an executor job does (the loop's hold
+count), and their next deadlines are ordinary entries of the loop's timer heap. So physics
 cannot advance while a participant works, nor past a participant's deadline, and a
 participant with no deadline due in a step costs nothing in that step.
 
