@@ -2,6 +2,7 @@
 
 Usage: python benchmarks/remote_lockstep.py [--rounds 5000] [--participants 1 4 16]
                                             [--repeat 3] [--kuka/--no-kuka] [--json out.json]
+                                            [--against OTHER_CHECKOUT]
 
 Measured in one run, each against a baseline of the same run:
 
@@ -10,12 +11,17 @@ Measured in one run, each against a baseline of the same run:
 * **lockstep rounds/s** with N participant processes over a Unix socket: the simulation
   (virtual time) serves; each participant sleeps 1 ms of sim time ``--rounds`` times, so
   every round grants all N and waits for all N DONEs. Reported as rounds per wall second and
-  as a ratio of the ping-pong rate.
+  as a ratio of the ping-pong rate, with the CPU time per round of the server and of each
+  active participant (``time.process_time`` over the measured rounds: what a round costs,
+  much less sensitive to the machine's load than wall time).
 * **idle participants cost nothing**: 1 active participant plus 15 that sleep an hour of sim
   time (no deadline due in any measured round); compare with the 1-participant figure.
 * **KUKA split**: ``evclock run kuka --serve ... --remote-controllers`` with ``evclock control
   kuka`` in another process, against the in-process ``evclock run kuka``; physics steps per
   wall second of each (from their reports' ``wall_time_s``) and the ratio (target >= 0.5).
+
+``--against DIR`` measures another checkout of evclock (``git worktree add /tmp/base main``)
+in the same run, interleaved with this one: before/after figures of a change.
 
 Each figure is the best of ``--repeat`` runs, variants interleaved so that load from elsewhere
 hits all alike. Wall time is what a round costs here, so a loaded machine lowers every
@@ -45,28 +51,35 @@ SERVER = textwrap.dedent(
         count, rounds = int(sys.argv[2]), int(sys.argv[3])
         async with evclock.serve(sys.argv[1]) as server:
             await server.wait_for_participants(count=count)
-            wall0 = time.perf_counter()
+            wall0, cpu0 = time.perf_counter(), time.process_time()
             await evclock.clock().sleep(rounds / 1000)  # `rounds` rounds of 1 ms
-            wall = time.perf_counter() - wall0
-        print(json.dumps({"rounds": rounds, "wall_s": wall}))
+            wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+        print(json.dumps({"rounds": rounds, "wall_s": wall, "cpu_s": cpu}))
     evclock.run(main())
     """
 )
 # Active participants sleep 1 ms at a time (past the measured rounds: the server stops first
 # and they end with ClockLost, as expected); idle ones sleep an hour: no deadline is due.
+# Active ones print the CPU seconds they spent from their first round to the end.
 PARTICIPANT = textwrap.dedent(
     """
-    import sys, evclock
+    import json, sys, time, evclock
+    cpu0 = None
     async def main():
+        global cpu0
         clock = evclock.clock()
         if sys.argv[1] == "idle":
             await clock.sleep(3600)
+        await clock.sleep(0.001)
+        cpu0 = time.process_time()
         while True:
             await clock.sleep(0.001)
     try:
         evclock.run(main())
     except evclock.ClockLost:
         pass
+    if cpu0 is not None:
+        print(json.dumps({"cpu_s": time.process_time() - cpu0}))
     """
 )
 
@@ -92,36 +105,53 @@ def ping_pong(rounds: int) -> float:
     return rounds / elapsed
 
 
-def lockstep(active: int, idle: int, rounds: int, folder: Path) -> float:
-    """Lockstep rounds per wall second with ``active`` busy and ``idle`` idle participants."""
+def lockstep(
+    active: int, idle: int, rounds: int, folder: Path, root: Path
+) -> tuple[float, float, float]:
+    """Lockstep rounds per wall second with ``active`` busy and ``idle`` idle participants,
+    and the CPU microseconds per round of the server and of one active participant (mean)."""
     url = f"unix://{folder / f'bench-{active}-{idle}.sock'}"
+    env = {**os.environ, "PYTHONPATH": str(root)}
     server = subprocess.Popen(
         [sys.executable, "-c", SERVER, url, str(active + idle), str(rounds)],
-        cwd=ROOT,
+        cwd=root,
+        env=env,
         stdout=subprocess.PIPE,
         text=True,
     )
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", PARTICIPANT, "active" if i < active else "idle"],
-            cwd=ROOT,
-            env={**os.environ, "EVCLOCK_CLOCK": f"{url}?name=p{i}"},
+            cwd=root,
+            env={**env, "EVCLOCK_CLOCK": f"{url}?name=p{i}"},
+            stdout=subprocess.PIPE,
+            text=True,
         )
         for i in range(active + idle)
     ]
     out, _ = server.communicate(timeout=600)
-    for proc in procs:
+    participant_cpu = [
+        json.loads(proc.communicate(timeout=60)[0])["cpu_s"] for proc in procs[:active]
+    ]
+    for proc in procs[active:]:
         proc.wait(timeout=60)
     result = json.loads(out)
-    return float(result["rounds"] / result["wall_s"])
+    rounds = result["rounds"]
+    return (
+        rounds / result["wall_s"],
+        result["cpu_s"] / rounds * 1e6,
+        sum(participant_cpu) / len(participant_cpu) / rounds * 1e6,
+    )
 
 
-def kuka_split(folder: Path) -> tuple[float, float]:
+def kuka_split(folder: Path, root: Path) -> tuple[float, float]:
     """Physics steps per wall second: (in-process, split across two processes)."""
+    env = {**os.environ, "PYTHONPATH": str(root)}
     inproc = folder / "inproc.json"
     subprocess.run(
         [*CLI, "run", "kuka", "--quiet", "--json", str(inproc)],
-        cwd=ROOT,
+        cwd=root,
+        env=env,
         check=True,
         capture_output=True,
         timeout=600,
@@ -131,13 +161,15 @@ def kuka_split(folder: Path) -> tuple[float, float]:
     server = subprocess.Popen(
         [*CLI, "run", "kuka", "--quiet", "--serve", url, "--remote-controllers", "--json",
          str(served)],
-        cwd=ROOT,
+        cwd=root,
+        env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
     )  # fmt: skip
     subprocess.run(
         [*CLI, "control", "kuka", "--quiet", "--clock", url],
-        cwd=ROOT,
+        cwd=root,
+        env=env,
         check=True,
         capture_output=True,
         timeout=600,
@@ -157,7 +189,15 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--kuka", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--against", type=Path, default=None, help="another evclock checkout, measured alike"
+    )
     args = parser.parse_args()
+    checkouts = [("", ROOT)]
+    if args.against is not None:
+        if not (args.against / "evclock" / "__init__.py").is_file():
+            parser.error(f"--against {args.against}: not an evclock checkout")
+        checkouts.append(("against_", args.against.resolve()))
     results: dict[str, float] = {}
     variants = [(f"lockstep_{n}_rounds_per_s", n, 0) for n in args.participants]
     variants.append(("lockstep_1_active_15_idle_rounds_per_s", 1, 15))
@@ -166,29 +206,45 @@ def main() -> None:
         for _ in range(args.repeat):
             best = results.get("ping_pong_round_trips_per_s", 0.0)
             results["ping_pong_round_trips_per_s"] = max(best, ping_pong(args.rounds * 4))
-            for key, active, idle in variants:
-                rate = lockstep(active, idle, args.rounds, folder)
-                results[key] = max(results.get(key, 0.0), rate)
-            if args.kuka:
-                inproc, split = kuka_split(folder)
-                if split / inproc > results.get("kuka_split_ratio", 0.0):
-                    results.update(
-                        kuka_inprocess_steps_per_s=inproc,
-                        kuka_split_steps_per_s=split,
-                        kuka_split_ratio=split / inproc,
+            for name, active, idle in variants:
+                for prefix, root in checkouts:
+                    key = prefix + name
+                    rate, server_us, participant_us = lockstep(
+                        active, idle, args.rounds, folder, root
                     )
+                    if rate > results.get(key, 0.0):
+                        results[key] = rate
+                        results[key.replace("rounds_per_s", "server_cpu_us")] = server_us
+                        results[key.replace("rounds_per_s", "participant_cpu_us")] = participant_us
+            if args.kuka:
+                for prefix, root in checkouts:
+                    inproc, split = kuka_split(folder, root)
+                    if split / inproc > results.get(f"{prefix}kuka_split_ratio", 0.0):
+                        results[f"{prefix}kuka_inprocess_steps_per_s"] = inproc
+                        results[f"{prefix}kuka_split_steps_per_s"] = split
+                        results[f"{prefix}kuka_split_ratio"] = split / inproc
     base = results["ping_pong_round_trips_per_s"]
     print(f"baseline ping-pong (2 processes, blocking): {base:,.0f} round trips/s")
-    for key, active, idle in variants:
-        label = f"{active} participant(s)" if not idle else f"{active} active + {idle} idle"
-        rate = results[key]
-        print(f"lockstep, {label}: {rate:,.0f} rounds/s ({rate / base:.2f} x ping-pong)")
-    if args.kuka:
-        print(
-            f"KUKA: in-process {results['kuka_inprocess_steps_per_s']:,.0f} steps/s, "
-            f"controllers in another process {results['kuka_split_steps_per_s']:,.0f} "
-            f"steps/s: ratio {results['kuka_split_ratio']:.2f}"
-        )
+    for prefix, root in checkouts:
+        print(f"\n{root}:")
+        for name, active, idle in variants:
+            key = prefix + name
+            label = f"{active} participant(s)" if not idle else f"{active} active + {idle} idle"
+            rate = results[key]
+            server_us = results[key.replace("rounds_per_s", "server_cpu_us")]
+            participant_us = results[key.replace("rounds_per_s", "participant_cpu_us")]
+            print(
+                f"lockstep, {label}: {rate:,.0f} rounds/s ({rate / base:.2f} x ping-pong); "
+                f"CPU per round: server {server_us:.0f} us, each active participant "
+                f"{participant_us:.0f} us"
+            )
+        if args.kuka:
+            print(
+                f"KUKA: in-process {results[f'{prefix}kuka_inprocess_steps_per_s']:,.0f} "
+                f"steps/s, controllers in another process "
+                f"{results[f'{prefix}kuka_split_steps_per_s']:,.0f} steps/s: ratio "
+                f"{results[f'{prefix}kuka_split_ratio']:.2f}"
+            )
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2))
 

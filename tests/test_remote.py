@@ -73,6 +73,58 @@ def test_lockstep_participant_runs_on_server_time_and_data_is_handled_at_its_tim
     assert end == 5_000_000
 
 
+def test_participants_due_at_the_same_time_are_granted_together_and_one_may_leave_early(
+    tmp_path: Path,
+) -> None:
+    # a, b and c share every 1 ms deadline (one group per deadline on the server); c leaves
+    # after 2 rounds while a and b are still due then; d's deadlines fall in between.
+    url = address(tmp_path)
+    rounds = {"a": "6", "b": "6", "c": "2"}
+    procs = {
+        n: spawn(tmp_path, TICKER, k, EVCLOCK_CLOCK=f"{url}?name={n}") for n, k in rounds.items()
+    }
+    procs["d"] = spawn(
+        tmp_path, TICKER.replace("0.001", "0.0015"), "4", EVCLOCK_CLOCK=f"{url}?name=d"
+    )
+    handled: list[tuple[int, str, str]] = []
+
+    async def main() -> int:
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+
+            def on_tick(message: evclock.Message) -> None:
+                assert clock.now() == message.time  # handled at its sim time
+                handled.append((message.time.nanoseconds, message.sender, message.data.decode()))
+
+            server.subscribe("tick", on_tick)
+            await server.wait_for_participants("a", "b", "c", "d")
+            await server.wait_until_left()
+            return clock.now().nanoseconds
+
+    end = evclock.run(main())
+    outs = {}
+    for name, proc in procs.items():
+        code, out, err = finish(proc)
+        assert code == 0, err
+        outs[name] = json.loads(out)
+    start = outs["a"][0]  # the time all four had joined at (they join while time is held)
+    assert all(seen[0] == start for seen in outs.values())
+    for name, count in (("a", 6), ("b", 6), ("c", 2)):
+        assert outs[name] == [start + i * 1_000_000 for i in range(count + 1)]
+    assert outs["d"] == [start + i * 1_500_000 for i in range(5)]
+    assert end == start + 6_000_000
+    # Everything sent was handled, in time order; at a shared time in join order (one order
+    # throughout: the order the processes happened to join in).
+    times = [t_ns for t_ns, _, _ in handled]
+    assert times == sorted(times)
+    before: set[tuple[str, str]] = set()  # (x, y): x was handled before y at a shared time
+    for t_ns in sorted(set(times)):
+        senders = [sender for t, sender, _ in handled if t == t_ns]
+        before.update(itertools.combinations(senders, 2))
+    assert not any((y, x) in before for x, y in before)
+    assert sorted(sender for _, sender, _ in handled) == sorted("a" * 6 + "b" * 6 + "cc" + "d" * 4)
+
+
 def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -> None:
     url = address(tmp_path)
     slow = """
@@ -480,6 +532,27 @@ def test_whole_frames_one_or_several_per_read() -> None:
     assert [kind for kind, _ in two] == [proto.DONE, proto.BYE]
     with pytest.raises(evclock.ProtocolError, match="bad frame length 0"):
         reader.feed(b"\x00\x00\x00\x00D")
+
+
+def test_a_rounds_frames_unpack_whole_and_the_reader_says_when_it_holds_a_partial_one() -> None:
+    # The hot path of a round takes a read that is exactly one GRANT / DONE in one unpack.
+    assert len(proto.grant(7)) == proto.STAMP_SIZE
+    assert proto.unpack_stamp(proto.grant(7)) == (proto.STAMP_SIZE - 4, proto.GRANT, 7)
+    assert len(proto.done(7, 9)) == proto.DONE_SIZE
+    assert proto.unpack_done(proto.done(7, proto.NO_DEADLINE)) == (
+        proto.DONE_SIZE - 4,
+        proto.DONE,
+        7,
+        proto.NO_DEADLINE,
+    )
+    # A frame cut across reads: the next read, even of a DONE's size, is not a frame start.
+    reader = proto.Reader()
+    assert reader.between_frames
+    frame = proto.done(7, 9)
+    assert reader.feed(frame[:5]) == []
+    assert not reader.between_frames
+    assert reader.feed(frame[5:]) == [(proto.DONE, frame[5:])]
+    assert reader.between_frames
 
 
 def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Path) -> None:

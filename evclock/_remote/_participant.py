@@ -299,7 +299,7 @@ class RemoteClockSource(TimeSource):
             raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
         self._check_usable()
         call_id = self._call_ids()
-        self._out += proto.call(call_id, service, bytes(data))
+        self._send(proto.call(call_id, service, bytes(data)))  # with the round's data, at once
         deadline = time.monotonic() + self._timeout
         sock = self._sock
         while call_id not in self._replies:
@@ -409,6 +409,11 @@ class RemoteClockSource(TimeSource):
         if not data:
             self._lose(self._closed_by_server())
             return
+        if len(data) == proto.STAMP_SIZE and self._reader.between_frames:
+            length, kind, t_ns = proto.unpack_stamp(data)
+            if kind == proto.GRANT and length == proto.STAMP_SIZE - 4 and t_ns >= self._now:
+                self._granted = t_ns  # a round's GRANT alone: the hot path
+                return
         if self._waiting_since is not None:
             self._waiting_since = time.monotonic()  # the server is alive (keepalives included)
         try:

@@ -55,6 +55,15 @@ HEADER_SIZE: Final = _HEADER.size
 _STAMP_PACK = _STAMP.pack
 _DONE_PACK = _DONE.pack
 
+# The hot path of a round: a read that is exactly one GRANT (participant) or one DONE (server)
+# is unpacked in one call, header included, without going through a Reader.
+#: Bytes of a GRANT/TIME frame; ``unpack_stamp(frame)`` -> ``(length, kind, t_ns)``.
+STAMP_SIZE: Final = _STAMP.size
+unpack_stamp: Final = _STAMP.unpack
+#: Bytes of a DONE frame; ``unpack_done(frame)`` -> ``(length, kind, t_ns, next_ns)``.
+DONE_SIZE: Final = _DONE.size
+unpack_done: Final = _DONE.unpack
+
 
 def grant(t_ns: int) -> bytes:
     """GRANT: run everything due at ``t_ns``, then answer DONE."""
@@ -146,6 +155,11 @@ class Reader:
 
     def __init__(self) -> None:
         self._buf = bytearray()
+
+    @property
+    def between_frames(self) -> bool:
+        """No partial frame is buffered: the next byte received starts a frame."""
+        return not self._buf
 
     def feed(self, data: bytes) -> list[tuple[int, bytes]]:
         """Append received bytes; return every frame now complete, in order."""

@@ -1,11 +1,15 @@
 """The clock server: a simulation serves its sim time to processes that join it.
 
 It lives on the simulation's :class:`~evclock.SimEventLoop` and uses nothing but the loop's
-own machinery: sockets are registered with ``add_reader``; a lockstep participant that is
-working at time ``t`` holds sim time exactly like an executor job does (the loop's hold
-count), and its next deadline is an ordinary entry of the loop's timer heap. So physics
+own machinery: sockets are registered with ``add_reader``; while lockstep participants work
+at time ``t`` the server holds sim time exactly like an executor job does (the loop's hold
+count), and their next deadlines are ordinary entries of the loop's timer heap. So physics
 cannot advance while a participant works, nor past a participant's deadline, and a
 participant with no deadline due in a step costs nothing in that step.
+
+Participants' deadlines are grouped by time: one loop timer per distinct deadline grants
+every participant due then, in join order (so a round of N participants costs one timer, not
+N), and the round holds sim time once, however many participants work in it.
 
 A *round* at time ``t`` is open while some lockstep participant works at ``t``. Data
 participants publish during a round is delivered when the round closes - to the simulation's
@@ -73,6 +77,7 @@ class _Peer:
 
     __slots__ = (
         "accepted_at",
+        "deadline",
         "index",
         "lost",
         "mode",
@@ -84,7 +89,6 @@ class _Peer:
         "sock",
         "stale_time",
         "subscriptions",
-        "timer",
         "working_at",
         "working_since",
     )
@@ -99,7 +103,7 @@ class _Peer:
         self.index = -1
         self.working_at: int | None = None
         self.working_since: float | None = None
-        self.timer: asyncio.TimerHandle | None = None
+        self.deadline: int | None = None  # sim ns it asked to be granted (told) at
         self.outbox: list[tuple[int, str, bytes]] = []
         self.subscriptions: set[str] = set()  # membership tests only, never iterated
         self.lost = False
@@ -172,6 +176,8 @@ class ClockServer:
         self._joined = 0
         self._working = 0  # lockstep participants working at the current time
         self._holds = 0  # holds on the loop's sim time that this server owns
+        # Deadline (sim ns) -> its loop timer and the participants due then.
+        self._due: dict[int, tuple[asyncio.TimerHandle, list[_Peer]]] = {}
         self._outbox: list[tuple[str, int, str, bytes]] = []  # from the simulation/followers
         self._round_has_data = False  # anything queued for the end of the round
         self._subscribers: dict[str, list[Callable[[Message], object]]] = {}
@@ -366,6 +372,14 @@ class ClockServer:
         if not data:
             self._lost(peer, "closed its connection without leaving (killed or crashed)")
             return
+        if len(data) == proto.DONE_SIZE and peer.reader.between_frames and peer.name:
+            length, kind, t_ns, next_ns = proto.unpack_done(data)
+            if kind == proto.DONE and length == proto.DONE_SIZE - 4:  # a round's DONE alone
+                try:
+                    self._on_done(peer, t_ns, next_ns)
+                except ProtocolError as exc:
+                    self._lost(peer, f"broke the protocol ({exc})")
+                return
         try:
             frames = peer.reader.feed(data)
             for kind, payload in frames:
@@ -446,7 +460,8 @@ class ClockServer:
             self._peers[self._peers.index(replaced)] = peer
             if replaced.working_at is not None:
                 self._working -= 1
-                self._release()
+                if not self._working:
+                    self._release()
             log.warning("clock server: %s rejoined at %s", peer.describe(), self._now())
         else:
             self._joined += 1
@@ -468,9 +483,7 @@ class ClockServer:
         self._disconnect(peer)
 
     def _disconnect(self, peer: _Peer) -> None:
-        if peer.timer is not None:
-            peer.timer.cancel()
-            peer.timer = None
+        self._unschedule(peer)
         if peer.sock.fileno() >= 0:
             if not self._loop.is_closed():
                 self._loop.remove_reader(peer.sock)
@@ -483,19 +496,33 @@ class ClockServer:
         peer.working_at = now
         peer.working_since = time.monotonic()
         peer.silent_reported = False
+        if not self._working:
+            self._hold()  # one hold per round, however many participants work in it
         self._working += 1
-        self._hold()
 
-    def _on_deadline(self, peer: _Peer) -> None:
-        peer.timer = None
+    def _stop_work(self, peer: _Peer) -> None:
+        peer.working_at = peer.working_since = None
+        self._working -= 1
+        if not self._working:
+            self._close_round()  # may grant again (data arrived): the round then goes on
+            self._release()  # after the round closed: physics cannot move in between
+
+    def _on_deadline(self, t_ns: int) -> None:
+        _, peers = self._due.pop(t_ns)
+        if len(peers) > 1:
+            peers.sort(key=lambda peer: peer.index)  # join order, whatever the DONEs' order
         now = self._loop.now_ns
-        if peer.mode == proto.MODE_LOCKSTEP:
-            if peer.working_at is not None:
-                return  # already granted now (data arrived): its DONE names its next deadline
-            self._start_work(peer, now)
-            self._send(peer, proto.grant(now))
-        else:
-            self._send_time(peer, now)
+        grant = None
+        for peer in peers:
+            peer.deadline = None
+            if peer.mode == proto.MODE_LOCKSTEP:
+                if peer.working_at is not None:
+                    continue  # already granted now (data arrived): its DONE names its next one
+                self._start_work(peer, now)
+                grant = grant or proto.grant(now)
+                self._send(peer, grant)
+            else:
+                self._send_time(peer, now)
 
     def _on_done(self, peer: _Peer, t_ns: int, next_ns: int) -> None:
         now = self._loop.now_ns
@@ -506,26 +533,37 @@ class ClockServer:
             raise ProtocolError(f"DONE at {t_ns} ns, but the participant was granted {now} ns")
         if next_ns != proto.NO_DEADLINE and next_ns <= t_ns:
             raise ProtocolError(f"next deadline {next_ns} ns is not after {t_ns} ns")
-        peer.working_at = peer.working_since = None
         self._schedule(peer, next_ns, now)
-        self._working -= 1
-        if not self._working:
-            self._close_round()
-        self._release()  # after the round closed: physics cannot move in between
+        self._stop_work(peer)
 
     def _schedule(self, peer: _Peer, next_ns: int, now: int) -> None:
-        if peer.timer is not None:  # superseded by the deadline the participant just named
-            peer.timer.cancel()
-            peer.timer = None
+        if peer.deadline is not None:  # superseded by the deadline the participant just named
+            self._unschedule(peer)
         if next_ns == proto.NO_DEADLINE:
             return
         if next_ns <= now:  # a follower behind the simulation: tell it the time now
             self._send_time(peer, now)
             return
+        peer.deadline = next_ns
+        due = self._due.get(next_ns)
+        if due is not None:
+            due[1].append(peer)
+            return
         # SimEventLoop._call_at_ns (evclock's own): exact integer ns, no float round trip.
-        peer.timer = self._loop._call_at_ns(
-            next_ns, next_ns / 1_000_000_000, self._on_deadline, (peer,), None
+        timer = self._loop._call_at_ns(
+            next_ns, next_ns / 1_000_000_000, self._on_deadline, (next_ns,), None
         )
+        self._due[next_ns] = (timer, [peer])
+
+    def _unschedule(self, peer: _Peer) -> None:
+        if peer.deadline is None:
+            return
+        timer, peers = self._due[peer.deadline]
+        peers.remove(peer)
+        if not peers:
+            timer.cancel()
+            del self._due[peer.deadline]
+        peer.deadline = None
 
     def _close_round(self) -> None:
         """Deliver the round's data in a fixed order, still at this time."""
@@ -723,11 +761,7 @@ class ClockServer:
         if not clean:
             peer.outbox = []
         if peer.working_at is not None:
-            peer.working_at = None
-            self._working -= 1
-            if not self._working:
-                self._close_round()
-            self._release()
+            self._stop_work(peer)
         self._wake_waiters()
 
     def _abort(self, error: EvClockError) -> None:
