@@ -6,6 +6,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parent.parent
 TIMEOUT = 300  # wall seconds: a guard against hangs on a loaded machine, not a timing check
 
@@ -23,6 +25,7 @@ def run_example(*args: str) -> list[str]:
     return [line for line in proc.stdout.splitlines() if not line.startswith("pybullet build")]
 
 
+@pytest.mark.pybullet
 def test_shuttle_scenario_runs_from_python() -> None:
     assert run_example("examples/shuttle_scenario.py") == [
         "shuttle seed 3: success",
@@ -30,6 +33,7 @@ def test_shuttle_scenario_runs_from_python() -> None:
     ]
 
 
+@pytest.mark.pybullet
 def test_sweep_record_plot_example(tmp_path: Path) -> None:
     lines = run_example("examples/sweep_record_plot.py", str(tmp_path))
     assert lines[0] == "sweep: 8 runs, success rate 100%"

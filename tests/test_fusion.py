@@ -8,6 +8,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from typer.testing import CliRunner
 
 from evclock._cli import app, run_scenario
@@ -48,6 +49,7 @@ def test_sensor_fusion_example_prints_exactly_this() -> None:
     assert proc.stdout == EXAMPLE_OUTPUT
 
 
+@pytest.mark.pybullet
 def test_fusion_run_reports_stamp_ages_and_succeeds(tmp_path: Path) -> None:
     out = tmp_path / "report.json"
     result = CliRunner().invoke(app, ["run", "fusion", "--quiet", "--json", str(out)])
@@ -73,6 +75,7 @@ def test_fusion_run_reports_stamp_ages_and_succeeds(tmp_path: Path) -> None:
     assert stamps["warnings"] == []
 
 
+@pytest.mark.pybullet
 def test_fusion_is_the_same_whatever_the_pace() -> None:
     # (Seeds giving different runs: test_sims_physics.py::test_deterministic_per_seed.)
     first, again = run_scenario("fusion", seed=2), run_scenario("fusion", seed=2, rtf=50.0)
@@ -102,6 +105,7 @@ def test_readme_snippet_runs_as_written() -> None:
     ]
 
 
+@pytest.mark.pybullet
 def test_fusion_on_wall_time_stamps_in_the_wall_clock_domain() -> None:
     report = run_scenario("fusion", wall=True, until=0.5)
     assert report.mode == "wall"

@@ -46,6 +46,7 @@ def test_pybullet_snippet_runs_as_written() -> None:
     assert float(out[10].split("z = ")[1].split()[0]) < 1.0  # it fell
 
 
+@pytest.mark.pybullet
 def test_scenario_snippet_runs_with_the_command(tmp_path: Path) -> None:
     scenario = tmp_path / "reach.py"
     scenario.write_text(snippet("### Writing a scenario"))

@@ -28,6 +28,7 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, evclock.Ru
     return path, report
 
 
+@pytest.mark.pybullet
 def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object]) -> None:
     path, _ = recorded
     with path.open("rb") as stream:
@@ -51,6 +52,7 @@ def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object
     assert topics["/evclock/loop/control"].metadata == {"deterministic": "true"}
 
 
+@pytest.mark.pybullet
 def test_every_tick_is_recorded_at_its_sim_time(recorded: tuple[Path, evclock.RunReport]) -> None:
     path, report = recorded
     trace = evclock.read_trace(path)
@@ -77,6 +79,7 @@ def test_every_tick_is_recorded_at_its_sim_time(recorded: tuple[Path, evclock.Ru
     assert trace.metadata["evclock.outcome"]["verdict"] == "success"
 
 
+@pytest.mark.pybullet
 def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.RunReport]) -> None:
     path, report = recorded
     plain = evclock.run_scenario(SHUTTLE, seed=1)
@@ -87,6 +90,7 @@ def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.RunRepo
     assert last_state.time_ns / 1e9 == report.sim_time_s
 
 
+@pytest.mark.pybullet
 def test_trace_diff_identical_runs_whatever_the_rtf(
     recorded: tuple[Path, evclock.RunReport], tmp_path: Path
 ) -> None:
@@ -99,6 +103,7 @@ def test_trace_diff_identical_runs_whatever_the_rtf(
     assert "deterministic messages agree bit for bit" in result.output
 
 
+@pytest.mark.pybullet
 def test_trace_diff_names_the_first_divergence(
     recorded: tuple[Path, evclock.RunReport], tmp_path: Path
 ) -> None:
@@ -120,6 +125,7 @@ def test_trace_diff_names_the_first_divergence(
     assert evclock.first_divergence(a, a) is None
 
 
+@pytest.mark.pybullet
 def test_trace_diff_reports_a_shorter_run(
     recorded: tuple[Path, evclock.RunReport], tmp_path: Path
 ) -> None:
@@ -174,6 +180,7 @@ def _pixels_of(image: np.ndarray, color: str) -> int:
     return int((np.abs(image[:, :, :3] - rgb).max(axis=2) < 0.02).sum())
 
 
+@pytest.mark.pybullet
 def test_plot_draws_each_loop_and_the_rtf(
     recorded: tuple[Path, evclock.RunReport], tmp_path: Path
 ) -> None:
@@ -200,6 +207,7 @@ def test_plot_refuses_a_recording_without_loops(tmp_path: Path) -> None:
     assert "records no rate loop: nothing to plot" in " ".join(result.output.split())
 
 
+@pytest.mark.pybullet
 def test_recording_needs_sim_time(tmp_path: Path) -> None:
     result = runner.invoke(
         app, ["run", SHUTTLE, "--wall", "--record", str(tmp_path / "w.mcap"), "--quiet"]

@@ -162,6 +162,7 @@ def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -
     assert seen == [(10_000_000, 10_000_000), (20_000_000, 20_000_000), (30_000_000, 30_000_000)]
 
 
+@pytest.mark.pybullet
 def test_follower_sees_every_physics_step_and_never_holds_the_simulation(tmp_path: Path) -> None:
     from evclock import PyBulletTimeSource
 
@@ -343,6 +344,7 @@ def test_an_existing_socket_file_is_not_replaced(tmp_path: Path) -> None:
         evclock.run(main())
 
 
+@pytest.mark.pybullet
 def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
     async def main() -> list[str]:
         loop = asyncio.get_running_loop()

@@ -36,6 +36,7 @@ def wait(proc: subprocess.Popen[str]) -> tuple[int, str]:
     return proc.returncode, out + err
 
 
+@pytest.mark.pybullet
 @pytest.mark.parametrize(
     ("name", "until", "rtf"),
     [
@@ -78,6 +79,7 @@ def test_split_run_ends_bit_identical_to_the_in_process_run(
     ]
 
 
+@pytest.mark.pybullet
 def test_controllers_for_another_scenario_or_seed_are_refused(tmp_path: Path) -> None:
     address = f"unix://{tmp_path / 'sim.sock'}"
     server = evclock_cli(
@@ -100,6 +102,7 @@ def test_remote_controllers_needs_serve() -> None:
     assert "error: --remote-controllers needs --serve ADDR" in output
 
 
+@pytest.mark.pybullet
 def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
     address = f"unix://{tmp_path / 'sim.sock'}"
     follower = subprocess.Popen(

@@ -149,6 +149,7 @@ def test_publisher_sends_rmw_zenoh_samples_and_tokens(endpoint: str) -> None:
             peer.close()
 
 
+@pytest.mark.pybullet
 def test_publisher_follows_pybullet_steps_with_decimation(endpoint: str) -> None:
     source = evclock.PyBulletTimeSource.connect()
     with Ros2ClockPublisher(connect=[], listen=[endpoint]) as pub:
@@ -178,6 +179,7 @@ def test_publisher_follows_pybullet_steps_with_decimation(endpoint: str) -> None
             peer.close()
 
 
+@pytest.mark.pybullet
 def test_publisher_rejects_bad_input(endpoint: str) -> None:
     pub = Ros2ClockPublisher(connect=[], listen=[endpoint])
     with pytest.raises(ClockMismatchError, match="/clock carries sim time, got a steady time"):

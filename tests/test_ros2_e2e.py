@@ -46,6 +46,7 @@ def is_step_time(ns: int) -> bool:
     return n * 12_500_000 // 3 == ns
 
 
+@pytest.mark.pybullet
 def test_follower_timers_fire_at_the_publishers_times(folder: str) -> None:
     follower_socket = f"unixsock-stream/{folder}/follower.sock"
     follower = subprocess.Popen(
@@ -119,6 +120,7 @@ def raw_listener(endpoint: str) -> Any:
     return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
 
 
+@pytest.mark.pybullet
 def test_cli_publishes_clock_with_decimation(folder: str) -> None:
     endpoint = f"unixsock-stream/{folder}/listener.sock"
     session = raw_listener(endpoint)
@@ -168,6 +170,7 @@ def test_cli_rejects_ros2_options_without_ros2_clock() -> None:
     assert "--ros-domain-id: only with --ros2-clock" in result.output
 
 
+@pytest.mark.pybullet
 def test_cli_rejects_ros2_clock_on_wall_time() -> None:
     result = CliRunner().invoke(app, ["run", "cartpole", "--wall", "--ros2-clock"])
     assert result.exit_code == 2

@@ -20,6 +20,7 @@ TIMEOUT = 120  # wall seconds: a guard against hangs, not a performance assertio
 runner = CliRunner()
 
 
+@pytest.mark.pybullet
 def test_registered_names_load_the_bundled_classes() -> None:
     from evclock_sims import CartPole, HuskyPatrol, KukaReach
 
@@ -30,6 +31,7 @@ def test_registered_names_load_the_bundled_classes() -> None:
     assert {"kuka", "husky", "cartpole"} <= set(names)
 
 
+@pytest.mark.pybullet
 def test_module_reference_and_file_load_the_same_kind_of_class() -> None:
     from evclock_sims import CartPole
 
@@ -39,6 +41,7 @@ def test_module_reference_and_file_load_the_same_kind_of_class() -> None:
     assert load_scenario(f"{SHUTTLE}:Shuttle") is shuttle  # one module per file, loaded once
 
 
+@pytest.mark.pybullet
 @pytest.mark.parametrize(
     ("spec", "error", "message"),
     [
@@ -63,6 +66,7 @@ def test_bad_references_fail_with_clear_messages(
     assert message in str(info.value)
 
 
+@pytest.mark.pybullet
 def test_a_file_must_define_exactly_one_scenario(tmp_path: Path) -> None:
     two = tmp_path / "two.py"
     two.write_text(
@@ -77,6 +81,7 @@ def test_a_file_must_define_exactly_one_scenario(tmp_path: Path) -> None:
     assert load_scenario(f"{two}:B").name == "b"
 
 
+@pytest.mark.pybullet
 def test_parameters_are_public_scalar_class_attributes() -> None:
     shuttle = load_scenario(str(SHUTTLE))
     assert parameters(shuttle) == {
@@ -94,6 +99,7 @@ def test_parameters_are_public_scalar_class_attributes() -> None:
     assert issubclass(tuned, shuttle)
 
 
+@pytest.mark.pybullet
 @pytest.mark.parametrize(
     ("assignment", "message"),
     [
@@ -109,12 +115,14 @@ def test_bad_params_fail_clearly(assignment: str, message: str) -> None:
     assert message in str(info.value)
 
 
+@pytest.mark.pybullet
 def test_configure_rejects_a_value_of_the_wrong_type() -> None:
     with pytest.raises(evclock.InvalidTypeError) as info:
         configure(load_scenario(str(SHUTTLE)), {"gain": "3"})
     assert "parameter gain of 'shuttle' is a float, got '3'" in str(info.value)
 
 
+@pytest.mark.pybullet
 def test_run_a_scenario_file_with_a_param_changes_the_run() -> None:
     base = evclock.run_scenario(str(SHUTTLE), seed=2)
     slow = evclock.run_scenario(str(SHUTTLE), seed=2, params={"gain": 1.0})
@@ -125,6 +133,7 @@ def test_run_a_scenario_file_with_a_param_changes_the_run() -> None:
     assert slow.sim_time_s > base.sim_time_s  # a lower gain arrives later
 
 
+@pytest.mark.pybullet
 def test_cli_runs_a_file_and_a_module_reference() -> None:
     result = runner.invoke(app, ["run", str(SHUTTLE), "--seed", "1", "--quiet"])
     assert result.exit_code == 0, result.output
@@ -134,6 +143,7 @@ def test_cli_runs_a_file_and_a_module_reference() -> None:
     assert "cartpole (seed 0): SUCCESS" in result.output
 
 
+@pytest.mark.pybullet
 def test_cli_rejects_several_values_in_run() -> None:
     result = runner.invoke(app, ["run", str(SHUTTLE), "--param", "gain=1,2"])
     assert result.exit_code == 2
@@ -171,6 +181,7 @@ def _evclock(
     )
 
 
+@pytest.mark.pybullet
 def test_third_party_packages_register_scenarios_by_entry_point(tmp_path: Path) -> None:
     env = _third_party(tmp_path, {"acme": "acme_robots.shuttles:Shuttle"})
     listed = _evclock(["list"], env)

@@ -95,6 +95,7 @@ def test_quantiles() -> None:
     assert quantiles([5.0]) == dict.fromkeys(("p0", "p5", "p50", "p95", "p100"), 5.0)
 
 
+@pytest.mark.pybullet
 @pytest.mark.parametrize(
     ("args", "message"),
     [
@@ -112,6 +113,7 @@ def test_bad_sweep_input_exits_2(args: list[str], message: str) -> None:
     assert message in " ".join(result.output.split())
 
 
+@pytest.mark.pybullet
 def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
     png = tmp_path / "sweep.png"
@@ -158,6 +160,7 @@ def _rows_by_seed(path: Path) -> dict[int, dict[str, object]]:
     return {row["seed"]: row for row in json.loads(path.read_text())["rows"]}
 
 
+@pytest.mark.pybullet
 def test_a_crash_and_an_exception_are_failed_rows(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
     result = runner.invoke(
@@ -182,6 +185,7 @@ def _gone(pid: int) -> bool:
     return "State:\tZ" in status
 
 
+@pytest.mark.pybullet
 def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
     markers = tmp_path / "markers"
@@ -216,6 +220,7 @@ def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_pat
     assert _gone(worker)
 
 
+@pytest.mark.pybullet
 def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "ray.json"
     proc = subprocess.run(
@@ -233,6 +238,7 @@ def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     assert rows[0]["report"]["final_state"] == report.final_state  # type: ignore[index]
 
 
+@pytest.mark.pybullet
 def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
     markers = tmp_path / "markers"
