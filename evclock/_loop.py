@@ -44,9 +44,10 @@ from ._errors import (
     StallError,
 )
 from ._jumps import JumpHandle, TimeJump
+from ._outside import EXACT, OutsideWork
 from ._pacing import DEFAULT_MAX_LAG, Pacer, PacingControls, check_max_lag, check_rtf
 from ._tasks import describe_tasks
-from ._threads import busy_threads, could_call_back
+from ._threads import EVENT_LOOP_WAITS, check_thread_inference, could_call_back, internal_count
 from ._time import SIM, Time
 from .sources import TimeSource, VirtualTimeSource
 
@@ -100,7 +101,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         executor jobs) or by waiting for I/O before :class:`StallError`; None waits forever.
     :param paused: start paused (see :meth:`resume` and :meth:`step`).
     :param watch_threads: hold sim time while other non-daemon threads are busy (default).
-    :param selector: the selector serving I/O (default: the platform's best).
+    :param selector: the selector serving I/O (default: the platform's best). It may also
+        be passed as the first positional argument, as to ``asyncio.SelectorEventLoop``.
     :param wall: the wall clock pacing reads, in seconds (default ``time.perf_counter``);
         tests inject a fake one.
     """
@@ -118,6 +120,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         _debug: bool
 
         def _check_thread(self) -> None: ...
+        def _write_to_self(self) -> None: ...
 
         def _process_events(self, event_list: list[Any]) -> None: ...
         def _check_callback(self, callback: object, method: str) -> None: ...
@@ -135,6 +138,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         selector: Any = None,
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
+        if isinstance(source, selectors.BaseSelector) and selector is None:
+            # OUTSIDE HOOK: SimEventLoop(selector), like SelectorEventLoop(selector).
+            source, selector = None, source
         if source is None:
             source = VirtualTimeSource()
         elif not isinstance(source, TimeSource):
@@ -148,6 +154,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._stall_timeout = _check_stall_timeout(stall_timeout)
         check_rtf(rtf)
         check_max_lag(max_lag)
+        if watch_threads:
+            check_thread_inference()
         self._now_ns: int = source.now_ns
         source.attach(self)  # may refuse (a source drives one loop): before the selector too
         super().__init__(selector)
@@ -164,10 +172,15 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._pacer.pause()
         self._advance_directly = self._jump_when_idle = False
         self._update_fast_path()
-        self._holds = 0
-        self._holds_lock = threading.Lock()
         self._held_since: float | None = None
-        self._watch_threads = bool(watch_threads)
+        # OUTSIDE HOOK: what holds sim time and what can wake the loop (evclock/_outside.py).
+        self._outside = OutsideWork(
+            lambda: self._thread_id,
+            lambda: len(self._io_map) > 1,
+            lambda: bool(getattr(self, "_signal_handlers", None)),
+            self._write_to_self,
+            watch_threads=bool(watch_threads),
+        )
         self._jump_handlers: list[JumpHandle] = []
         self._sim_clock: SimClock | None = None
 
@@ -280,8 +293,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                     self._advance_directly
                     and sched
                     and len(io_map) <= 1
-                    and not self._holds
-                    and (len(_thread_registry) + len(_thread_limbo) <= 1 or self._only_daemons())
+                    and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
+                    and (
+                        len(_thread_registry) + len(_thread_limbo) <= 1
+                        or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
+                    )
                 ):
                     when, _, kind, obj = sched[0]
                     if obj.done() if kind == _SLEEP else obj._cancelled:
@@ -450,13 +466,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 return
         if len(self._io_map) > 1 and self._poll_io(0):
             return
-        if self._holds or (
-            self._watch_threads
-            and len(_thread_registry) + len(_thread_limbo) > 1
-            and not self._only_daemons()
-            and busy_threads(self._thread_id)
-        ):
-            self._wait_for_outside_work()
+        holder = self._outside.holder()  # OUTSIDE HOOK: is sim time held?
+        if holder is not None:
+            self._wait_for_outside_work(holder)
             return
         if self._ready:
             return  # a thread handed work over while we looked
@@ -470,13 +482,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._now_ns = max(target, self._now_ns)
         else:
             self._now_ns = self._source.advance(target, None if pacer.idle else pacer.allow)
-
-    def _only_daemons(self) -> bool:
-        """Whether every thread but the loop's is a daemon (ignored: background services)."""
-        me = self._thread_id
-        return not _thread_limbo and all(
-            t.daemon or t.ident == me for t in list(_thread_registry.values())
-        )
 
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
@@ -502,29 +507,31 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._held_since = now
         return now - self._held_since
 
-    def _wait_for_outside_work(self) -> None:
+    def _wait_for_outside_work(self, holder: str) -> None:
         held = self._held_for()
         limit = self._stall_timeout
         if limit is not None and held > limit:
-            threads = ", ".join(t.name for t in busy_threads(self._thread_id)) or "none"
             raise StallError(
                 f"sim time has been held for {held:.1f} s of wall time waiting for work "
-                f"outside the loop (executor jobs or holds: {self._holds}; busy threads: "
-                f"{threads}); make that work finish, mark background threads daemon, or "
-                "raise stall_timeout (None waits forever)"
+                "outside the loop, which holds it:\n"
+                + self._outside.describe()
+                + "\nmake that work finish (a thread that polls with a timeout holds sim time "
+                "while it runs: give it no timeout, or stop it), or raise stall_timeout "
+                "(None waits forever)"
             )
-        # Executor jobs call back through the self-pipe; bare threads need polling.
-        timeout = _THREAD_POLL if not self._holds else 0.05
+        # Exact holders call back through the self-pipe when they end; threads are polled.
+        timeout = 0.05 if holder == EXACT else _THREAD_POLL
         if limit is not None:
             timeout = min(timeout, max(limit - held, 0.0))
         self._poll_io(timeout)
 
     def _wait_for_io_or_deadlock(self) -> None:
-        if len(self._io_map) <= 1:
+        if not self._outside.can_wake():  # OUTSIDE HOOK: could anything wake us?
             raise DeadlockError(
                 "deadlock: every task is waiting and nothing can wake one "
                 f"(no timer is scheduled, {self._source.describe()} cannot advance on its "
-                "own, no I/O is registered and no other thread is working). Waiting tasks:\n"
+                "own, no I/O or signal handler is registered, no child process runs and no "
+                "other thread is working or waiting for I/O). Waiting tasks:\n"
                 + "\n".join(f"  {line}" for line in self._describe_waiting_tasks()),
                 self._describe_waiting_tasks(),
             )
@@ -544,26 +551,39 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     # --------------------------------------------------- work outside the loop
 
+    # OUTSIDE HOOKS: executor jobs, subprocesses and holds are counted in evclock/_outside.py.
+
     def run_in_executor(  # type: ignore[override]
         self, executor: concurrent.futures.Executor | None, func: Callable[..., _T], *args: Any
     ) -> asyncio.Future[_T]:
-        fut: asyncio.Future[_T] = super().run_in_executor(executor, func, *args)
-        self._add_hold()
-        fut.add_done_callback(self._release_hold_cb)
+        self._check_closed()
+        if self._debug:
+            self._check_callback(func, "run_in_executor")  # on func, not on our wrapper
+        token, job = self._outside.job(func, executor)
+        try:
+            fut: asyncio.Future[_T] = super().run_in_executor(executor, job, *args)
+        except BaseException:
+            self._outside.job_done(token)
+            raise
+        fut.add_done_callback(lambda _: self._outside.job_done(token))
         return fut
+
+    async def _make_subprocess_transport(self, *args: Any, **kwargs: Any) -> Any:
+        # asyncio internal (the one place every subprocess_exec/subprocess_shell and
+        # create_subprocess_* goes through): the child is counted once it is connected.
+        transport = await super()._make_subprocess_transport(*args, **kwargs)  # type: ignore[misc]
+        self._outside.add_child(transport)
+        return transport
 
     async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
         # Hold sim time: 3.12+ wraps this in a 300 s timeout that must not fire in sim time.
         with self.hold_time():
             await super().shutdown_default_executor(*args, **kwargs)
 
-    def _add_hold(self) -> None:
-        with self._holds_lock:
-            self._holds += 1
-
-    def _release_hold_cb(self, _fut: object) -> None:
-        with self._holds_lock:
-            self._holds -= 1
+    @property
+    def _holds(self) -> int:
+        """How many exactly-counted things outside the loop are in flight."""
+        return self._outside.active
 
     @contextlib.contextmanager
     def hold_time(self) -> Iterator[None]:
@@ -575,11 +595,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             with loop.hold_time():
                 await wait_for_reply_from_subprocess()
         """
-        self._add_hold()
+        self._outside.add_hold()
         try:
             yield
         finally:
-            self._release_hold_cb(None)
+            self._outside.release_hold()
 
     def _update_fast_path(self) -> None:
         # Without pacing the loop may advance straight to the next deadline; a
@@ -591,6 +611,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _pacing_changed(self) -> None:
         self._update_fast_path()
+        # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) wakes
+        # the loop, which may be blocked in a pacing or pause wait (DESIGN 5).
+        if self._thread_id is not None and threading.get_ident() != self._thread_id:
+            self._write_to_self()
 
     def _require_running(self, what: str) -> None:
         self._check_closed()
@@ -648,3 +672,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             super().close()
         finally:
             self._source.close()
+
+
+# OUTSIDE HOOK: a thread blocked in this loop's selector is an event loop, not busy work.
+EVENT_LOOP_WAITS.add(SimEventLoop._poll_io.__code__)
