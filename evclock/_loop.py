@@ -472,11 +472,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             return
         if self._ready:
             return  # a thread handed work over while we looked
-        self._held_since = None
         target = sched[0][0] if sched else None
         if target is None and not self._source.free_running:
             self._wait_for_io_or_deadlock()
             return
+        self._held_since = None
         pacer = self._pacer
         if self._jump_when_idle and target is not None:
             self._now_ns = max(target, self._now_ns)
@@ -544,7 +544,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 "forever. Waiting tasks:\n"
                 + "\n".join(f"  {line}" for line in self._describe_waiting_tasks())
             )
-        self._poll_io(None if limit is None else max(limit - held, 0.0) + 1e-3)
+        if self._poll_io(None if limit is None else max(limit - held, 0.0) + 1e-3):
+            self._held_since = None  # I/O came: the wait is over, the bound starts again
 
     def _describe_waiting_tasks(self) -> tuple[str, ...]:
         return describe_tasks(self)

@@ -15,12 +15,15 @@ one of the :class:`ThreadState` values, from the most exact source available:
   recognise ``Condition.wait`` (with or without timeout), idle ``concurrent.futures``
   workers and ``Thread.join``; anything else counts as running.
 
-Either way, a thread whose frames show an event loop waiting in its selector (an asyncio
-loop in a thread: anyio's blocking portal, another ``evclock.run()``) is a loop, not work.
+Either way, some waits are recognised from the innermost Python frames first: a simulation
+loop waiting in its selector (another ``evclock.run()`` in a thread) is a loop, not work;
+``Thread.join`` and ``concurrent.futures.Future.result`` wait for another party, which is
+judged on its own, so they are parked whatever their timeout.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import concurrent.futures.thread as _cf_thread
 import enum
 import os
@@ -29,7 +32,6 @@ import sys
 import threading
 import traceback
 import weakref
-from asyncio import base_events
 from types import CodeType, FrameType
 
 from ._errors import InvalidArgumentError
@@ -50,7 +52,7 @@ class ThreadState(enum.Enum):
     #: ``accept``, ``read``, ``waitpid``): waiting for the world outside (often the loop's
     #: own sockets). It does not hold sim time, but it may wake the loop.
     WAITING_IO = "waiting for I/O"
-    #: An event loop waiting in its selector: a service, like the loop's own sockets.
+    #: A simulation loop waiting in its selector: it follows its own time.
     EVENT_LOOP = "an event loop waiting"
 
 
@@ -73,20 +75,36 @@ _JOIN_CODES: frozenset[CodeType] = frozenset(
     )
 )
 #: Code objects of event-loop iterations that block in a selector (evclock adds its own).
-EVENT_LOOP_WAITS: set[CodeType] = {base_events.BaseEventLoop._run_once.__code__}  # type: ignore[attr-defined]
+#: Code objects where a simulation loop waits in its selector (the loop module adds its
+#: own): such a thread waits for its own time to come, it never holds another loop's. A
+#: stock asyncio loop in a thread (anyio's blocking portal) is judged by the kernel like
+#: any thread: waiting for its next timer holds, waiting for I/O only does not.
+EVENT_LOOP_WAITS: set[CodeType] = set()
+#: Waits for another thread or a loop, which is judged on its own: ``Thread.join`` and
+#: ``concurrent.futures.Future.result`` (what ``run_coroutine_threadsafe`` and anyio's
+#: ``from_thread`` block on). Their timeout is a safety bound, not work: parked either way.
+_WAITS_ON_OTHERS: frozenset[CodeType] = _JOIN_CODES | {
+    concurrent.futures.Future.result.__code__,
+    concurrent.futures.Future.exception.__code__,
+}
 #: How many frames outward from the innermost one are searched for a known wait: wrappers
 #: around lock acquisition (blockbuster, tracers) add a few.
 _FRAME_DEPTH = 6
 
 
-def _in_event_loop_wait(frame: FrameType | None) -> bool:
+def _waits_on_another_party(frame: FrameType | None) -> ThreadState | None:
+    """EVENT_LOOP or PARKED when the innermost frames show a wait that another party ends
+    (whatever its timeout), else None."""
     for _ in range(_FRAME_DEPTH):
         if frame is None:
-            return False
-        if frame.f_code in EVENT_LOOP_WAITS:
-            return True
+            return None
+        code = frame.f_code
+        if code in EVENT_LOOP_WAITS:
+            return ThreadState.EVENT_LOOP
+        if code in _WAITS_ON_OTHERS:
+            return ThreadState.PARKED
         frame = frame.f_back
-    return False
+    return None
 
 
 def _state_from_frames(frame: FrameType) -> ThreadState:
@@ -109,8 +127,6 @@ def _state_from_frames(frame: FrameType) -> ThreadState:
         work_queue = frame.f_locals.get("work_queue")
         idle = work_queue is not None and work_queue.empty()
         return ThreadState.PARKED if idle else ThreadState.RUNNING
-    if code in _JOIN_CODES:
-        return ThreadState.PARKED
     return ThreadState.RUNNING
 
 
@@ -235,8 +251,10 @@ def check_thread_inference() -> None:
 
 def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadState:
     """The state of ``thread``, whose innermost Python frame is ``frame`` (None: none yet)."""
-    if frame is not None and _in_event_loop_wait(frame):
-        return ThreadState.EVENT_LOOP
+    if frame is not None:
+        waiting = _waits_on_another_party(frame)
+        if waiting is not None:
+            return waiting
     native_id = thread.native_id
     if _kernel is not None and native_id is not None:
         text = _kernel.read(native_id)
@@ -289,8 +307,8 @@ def describe_thread(thread: threading.Thread, state: ThreadState) -> str:
     head = f"{kind} {thread.name!r} ({state.value})"
     if frame is None:
         return head
-    stack = traceback.format_stack(frame, limit=4)
-    return head + ":\n" + "".join("      " + line.strip() + "\n" for line in stack).rstrip()
+    lines = "".join(traceback.format_stack(frame, limit=4)).splitlines()
+    return head + ":\n" + "\n".join("    " + line for line in lines)
 
 
 def could_call_back(loop_thread_id: int | None) -> bool:
