@@ -173,40 +173,62 @@ class Pacer:
         )
 
     def allow(self, next_ns: int) -> bool:
-        """May sim time move to ``next_ns`` now? Waits (serving I/O) as pacing requires."""
-        stepping = False
-        while self.paused:
-            if self._step_budget > 0:
-                stepping = True  # spent only once the pacing wait below is over
-                break
-            if self._run_until_ns is not None and self._now_ns() < self._run_until_ns:
-                break
-            if self._wait(None):
-                return False
-        if self._rtf is not None:
-            wall = self._wall()
-            if self._anchor is None:
-                self._anchor = (wall, self._now_ns())
-            wall0, sim0 = self._anchor
-            due = wall0 + (next_ns - sim0) / 1e9 / self._rtf
-            lag = wall - due
-            if lag > self.max_lag:
-                if self.strict:
-                    raise LagError(
-                        f"the simulation lags {lag:.3f} s of wall time behind rtf={self._rtf:g} "
-                        f"(strict limit {self.max_lag:g} s); lower the rtf, lighten the "
-                        "controllers or pass strict=False to let it run as fast as it can"
-                    )
-                # Re-anchor on now: never burst to catch up on lost time.
-                now_ns = self._now_ns()
-                self._anchor = (wall, now_ns)
-                due = wall + (next_ns - now_ns) / 1e9 / self._rtf
-            while (delay := due - self._wall()) > 0:
-                if self._wait(delay):
+        """May sim time move to ``next_ns`` now? Waits (serving I/O) as pacing requires.
+
+        A control changed while waiting (pause, rtf, step - possibly from another thread,
+        which wakes the wait) makes it decide again from the new settings.
+        """
+        while True:
+            stepping = False
+            while self.paused:
+                if self._step_budget > 0:
+                    stepping = True  # spent only once the pacing wait below is over
+                    break
+                if self._run_until_ns is not None and self._now_ns() < self._run_until_ns:
+                    break
+                if self._wait(None):
                     return False
-        if stepping:
-            self._step_budget -= 1
-        return True
+            if self._rtf is not None:
+                outcome = self._wait_for_pace(next_ns)
+                if outcome == "work":
+                    return False
+                if outcome == "changed":
+                    continue
+            if stepping:
+                self._step_budget -= 1
+            return True
+
+    def _controls(self) -> tuple[object, ...]:
+        return (self._rtf, self.paused, self._step_budget, self._run_until_ns)
+
+    def _wait_for_pace(self, next_ns: int) -> str:
+        """Wait until ``next_ns`` is due at the requested rtf: "due", "work" (something
+        became runnable first) or "changed" (a control changed meanwhile)."""
+        assert self._rtf is not None
+        wall = self._wall()
+        if self._anchor is None:
+            self._anchor = (wall, self._now_ns())
+        wall0, sim0 = self._anchor
+        due = wall0 + (next_ns - sim0) / 1e9 / self._rtf
+        lag = wall - due
+        if lag > self.max_lag:
+            if self.strict:
+                raise LagError(
+                    f"the simulation lags {lag:.3f} s of wall time behind rtf={self._rtf:g} "
+                    f"(strict limit {self.max_lag:g} s); lower the rtf, lighten the "
+                    "controllers or pass strict=False to let it run as fast as it can"
+                )
+            # Re-anchor on now: never burst to catch up on lost time.
+            now_ns = self._now_ns()
+            self._anchor = (wall, now_ns)
+            due = wall + (next_ns - now_ns) / 1e9 / self._rtf
+        controls = self._controls()
+        while (delay := due - self._wall()) > 0:
+            if self._wait(delay):
+                return "work"
+            if self._controls() != controls:
+                return "changed"
+        return "due"
 
 
 class PacingControls:

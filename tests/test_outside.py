@@ -5,6 +5,7 @@ deadlock, no hang - only on sim time. Every wait here is bounded."""
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import os
 import queue
 import signal
@@ -332,3 +333,117 @@ def test_selector_as_first_positional_argument() -> None:
         assert loop.run_until_complete(main()) == 2.0
     finally:
         loop.close()
+
+
+# ------------------------------------------------------ controls from another thread
+
+
+class Done:
+    """Set by the loop when a test's scenario is over. Waiting on it is waiting on a
+    concurrent future, which never holds sim time whatever its timeout (an
+    ``Event.wait(10)`` would hold it for those 10 s: it may be a delay)."""
+
+    def __init__(self) -> None:
+        self._future: concurrent.futures.Future[None] = concurrent.futures.Future()
+
+    def set(self) -> None:
+        if not self._future.done():
+            self._future.set_result(None)
+
+    def wait(self, timeout: float) -> bool:
+        try:
+            self._future.result(timeout)
+        except concurrent.futures.TimeoutError:
+            return False
+        return True
+
+
+def _operate(loop: evclock.SimEventLoop, action: object, done: Done) -> None:
+    """Call a control directly from this (operator) thread once the loop waits; if the loop
+    has not finished 10 s later, unblock it through call_soon_threadsafe so that the test
+    fails on its assertion instead of hanging."""
+    time.sleep(0.05)
+    action()  # type: ignore[operator]
+    if not done.wait(10):
+        loop.call_soon_threadsafe(loop.stop)
+
+
+def test_step_and_resume_called_from_another_thread_wake_a_paused_loop() -> None:
+    async def main() -> list[float]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        done = Done()
+        seen = []
+        loop.pause()
+        threading.Thread(target=_operate, args=(loop, loop.step, done), daemon=True).start()
+        await asyncio.sleep(3)  # one step: a jump to this deadline
+        seen.append(loop.time())
+        threading.Thread(target=_operate, args=(loop, loop.resume, done), daemon=True).start()
+        await asyncio.sleep(4)
+        seen.append(loop.time())
+        done.set()
+        return seen
+
+    assert evclock.run(main()) == [3.0, 7.0]
+
+
+def test_step_until_called_from_another_thread() -> None:
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        done = Done()
+        loop.pause()
+        target = evclock.Time(2.5)
+
+        def step_until() -> None:
+            loop.step_until(target)
+
+        threading.Thread(target=_operate, args=(loop, step_until, done), daemon=True).start()
+        while loop.time() < 2.5:
+            await asyncio.sleep(0.5)
+        done.set()
+        return loop.time()
+
+    assert evclock.run(main()) == 2.5
+
+
+def test_rtf_set_from_another_thread_ends_a_long_pacing_wait() -> None:
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        done = Done()
+
+        def full_speed() -> None:
+            loop.rtf = None
+
+        threading.Thread(target=_operate, args=(loop, full_speed, done), daemon=True).start()
+        await asyncio.sleep(3600)  # at rtf=0.001 this would take 3.6 million wall seconds
+        done.set()
+        return loop.time()
+
+    started = time.monotonic()
+    assert evclock.run(main(), rtf=0.001) == 3600.0
+    assert time.monotonic() - started < 30
+
+
+def test_a_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
+    async def main() -> str:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        errors: list[BaseException] = []
+
+        def operator() -> None:
+            try:
+                loop.step()  # the loop is not paused
+            except evclock.PacingError as exc:
+                errors.append(exc)
+
+        thread = threading.Thread(target=operator)
+        thread.start()
+        await asyncio.to_thread(thread.join, 10)
+        return str(errors[0])
+
+    assert evclock.run(main()) == (
+        "step() needs a paused loop, but it is running as fast as possible; "
+        "call pause() first, then step"
+    )

@@ -166,7 +166,7 @@ def run_module(
             if outcome == "running":
                 outcomes[test] = "fail"
                 details[test] = f"module killed after {timeout:g} s while this test ran"
-    elif proc.returncode not in (0, 1) and not outcomes:
+    elif proc.returncode not in (0, 5) and not outcomes:  # crashed before any test (5: none)
         outcomes[f"{module}::<module>"] = "fail"
         details[f"{module}::<module>"] = f"exit status {proc.returncode}: {text[-2000:]}"
     for test, outcome in outcomes.items():
@@ -291,9 +291,24 @@ def main() -> None:
     parser.add_argument("--timeout", type=float, default=DEFAULT_MODULE_TIMEOUT)
     parser.add_argument("--json", type=Path, help="write every outcome to this file")
     parser.add_argument("-v", "--verbose", action="store_true", help="print failures' details")
+    parser.add_argument(
+        "--reuse-default",
+        type=Path,
+        metavar="JSON",
+        help="take the default loop's outcomes from an earlier --json file instead of running "
+        "them again (they do not depend on evclock): for quick iterations with --loop sim",
+    )
     args = parser.parse_args()
 
     loops = list(LOOPS) if args.loop == "both" else [args.loop]
+    reused: list[ModuleRun] = []
+    if args.reuse_default:
+        reused = [
+            ModuleRun(**r)
+            for r in json.loads(args.reuse_default.read_text(encoding="utf-8"))
+            if r["loop"] == "default"
+        ]
+        loops = ["sim"]
     suites = ["asyncio", "anyio"] if args.suite == "all" else [args.suite]
     anyio_src = anyio_source() if "anyio" in suites else None
     jobs: list[tuple[str, str, str]] = []
@@ -304,6 +319,9 @@ def main() -> None:
         jobs += [(suite, module, loop) for module in modules for loop in loops]
     started = time.monotonic()
     runs: list[ModuleRun] = []
+    modules_run = {(suite, module) for suite, module, _ in jobs}
+    runs += [r for r in reused if (r.suite, r.module) in modules_run]
+    done_before = len(runs)
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         futures = [
             pool.submit(run_module, suite, module, loop, args.timeout, anyio_src)
@@ -313,7 +331,7 @@ def main() -> None:
             r = future.result()
             runs.append(r)
             print(
-                f"[{len(runs)}/{len(jobs)}] {r.suite} {r.module} on {r.loop}: "
+                f"[{len(runs) - done_before}/{len(jobs)}] {r.suite} {r.module} on {r.loop}: "
                 f"{r.count('pass')} pass, {r.count('fail')} fail, {r.count('skip')} skip "
                 f"in {r.wall:.0f} s" + (" (TIMEOUT)" if r.timed_out else ""),
                 flush=True,
@@ -328,7 +346,7 @@ def main() -> None:
         args.json.write_text(
             json.dumps([dataclasses.asdict(r) for r in runs], indent=1), encoding="utf-8"
         )
-    status = report(runs, loops)
+    status = report(runs, ["default", *loops] if reused else loops)
     print(f"(wall time {time.monotonic() - started:.0f} s, {args.jobs} jobs)")
     sys.exit(status)
 
