@@ -10,6 +10,7 @@ import os
 import queue
 import signal
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -447,3 +448,21 @@ def test_a_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
         "step() needs a paused loop, but it is running as fast as possible; "
         "call pause() first, then step"
     )
+
+
+def test_outside_world_example_prints_exact_sim_times() -> None:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run(
+        [PY, os.path.join(root, "examples", "outside_world.py")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [
+        "child process said 'computed' at 0.000000000 s (sim)",
+        "thread handed over 'done' at 0.000000000 s (sim)",
+        "received SIGUSR1 at 0.000000000 s (sim)",
+        "server replied 'PING' at 5.000000000 s (sim)",
+    ]

@@ -4,7 +4,9 @@ Loaded with ``-p _anyio_plugin`` (its folder on ``PYTHONPATH``). It
 
 * installs ``SimEventLoop`` when ``EVCLOCK_CONFORMANCE_LOOP=sim`` (see ``_sim_loop``);
 * keeps only the plain asyncio backend (anyio also parametrises its tests with trio, uvloop
-  and an eager-task factory: none of those run on the loop under test);
+  and an eager-task factory: none of those run on the loop under test), minus the tests
+  named in the file ``EVCLOCK_CONFORMANCE_SKIP`` points to (already run by a previous
+  process that died);
 * writes each test's start and outcome to the JSON-lines file named by
   ``EVCLOCK_CONFORMANCE_OUT``, in the same format as ``_asyncio_child``.
 """
@@ -43,10 +45,13 @@ def _backend_id(item: pytest.Item) -> str | None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    with open(os.environ.get("EVCLOCK_CONFORMANCE_SKIP", os.devnull), encoding="utf-8") as f:
+        already_run = {line.strip() for line in f if line.strip()}
     keep, drop = [], []
     for item in items:
         backend = _backend_id(item)
-        (keep if backend in (None, "asyncio") else drop).append(item)
+        wanted = backend in (None, "asyncio") and item.nodeid not in already_run
+        (keep if wanted else drop).append(item)
     if drop:
         config.hook.pytest_deselected(items=drop)
     items[:] = keep

@@ -7,21 +7,28 @@ Usage (the runner calls it; one subprocess per module)::
 Each line of the results file is a JSON object: ``{"test": id, "event": "start"}`` before a
 test runs, then ``{"test": id, "outcome": "pass"|"fail"|"skip", "detail": ...}``. Lines are
 flushed as they are written, so when the runner kills a module that hangs, the last "start"
-without an outcome names the test that hung.
+without an outcome names the test that hung. Tests named in the file that
+``EVCLOCK_CONFORMANCE_SKIP`` points to (one id a line: those a previous process already ran)
+are left out.
 """
 
 from __future__ import annotations
 
+import faulthandler
 import json
+import os
 import sys
 import traceback
 import unittest
+from collections.abc import Iterator
 from types import TracebackType
 from typing import IO, Any
 
 from _sim_loop import install_if_requested
 
 _PREFIX = "test.test_asyncio."
+#: Wall seconds one test may take (test_asyncio's own waits are bounded by 30 s).
+PER_TEST_TIMEOUT = 60.0
 _ExcInfo = tuple[type[BaseException], BaseException, TracebackType | None]
 
 
@@ -39,6 +46,13 @@ class RecordingResult(unittest.TestResult):
     def startTest(self, test: unittest.TestCase) -> None:
         super().startTest(test)
         self._write(test, event="start")
+        # A test that hangs ends this process (stacks on stderr); the runner goes on
+        # with the rest of the module in a new one.
+        faulthandler.dump_traceback_later(PER_TEST_TIMEOUT, exit=True)
+
+    def stopTest(self, test: unittest.TestCase) -> None:
+        faulthandler.cancel_dump_traceback_later()
+        super().stopTest(test)
 
     def addSuccess(self, test: unittest.TestCase) -> None:
         super().addSuccess(test)
@@ -76,10 +90,23 @@ def _format(err: _ExcInfo) -> str:
     return "".join(traceback.format_exception(*err))[-4000:]
 
 
+def _tests(suite: unittest.TestSuite) -> Iterator[unittest.TestCase]:
+    for item in suite:
+        if isinstance(item, unittest.TestSuite):
+            yield from _tests(item)
+        else:
+            yield item
+
+
 def main() -> None:
     module, out_path = sys.argv[1], sys.argv[2]
     install_if_requested()
-    suite = unittest.defaultTestLoader.loadTestsFromName(_PREFIX + module)
+    with open(os.environ.get("EVCLOCK_CONFORMANCE_SKIP", os.devnull), encoding="utf-8") as f:
+        skip = {line.strip() for line in f if line.strip()}
+    loaded = unittest.defaultTestLoader.loadTestsFromName(_PREFIX + module)
+    suite = unittest.TestSuite(
+        t for t in _tests(loaded) if t.id().removeprefix(_PREFIX) not in skip
+    )
     with open(out_path, "w", encoding="utf-8") as out:
         suite.run(RecordingResult(out))
 

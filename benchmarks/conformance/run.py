@@ -130,14 +130,59 @@ def command_for(suite: str, module: str, out: Path, anyio_src: Path | None) -> l
 def run_module(
     suite: str, module: str, loop: str, timeout: float, anyio_src: Path | None
 ) -> ModuleRun:
+    """Run one module; when its process dies or hangs under a test, that test fails and the
+    module goes on in a fresh process without the tests already run."""
+    outcomes: dict[str, str] = {}
+    details: dict[str, str] = {}
+    stderr_tail = ""
+    timed_out = False
+    started = time.monotonic()
+    while True:
+        remaining = timeout - (time.monotonic() - started)
+        if remaining <= 0:
+            timed_out = True
+            break
+        new, new_details, returncode, stderr, hung = _attempt(
+            suite, module, loop, remaining, anyio_src, skip=sorted(outcomes)
+        )
+        stderr_tail = (stderr_tail + stderr)[-6000:]
+        details.update(new_details)
+        culprit = [test for test, outcome in new.items() if outcome == "running"]
+        outcomes.update(new)
+        for test in culprit:
+            outcomes[test] = "fail"
+            details[test] = (
+                f"the module's process hung under this test and was killed after {remaining:.0f} s"
+                if hung
+                else f"the module's process died under this test (exit status {returncode})"
+            )
+        if hung:
+            timed_out = True
+            break
+        if not culprit:
+            if returncode not in (0, 1, 5) and not new:  # crashed outside any test (5: none)
+                outcomes[f"{module}::<module>"] = "fail"
+                details[f"{module}::<module>"] = f"exit status {returncode}: {stderr[-2000:]}"
+            break
+    wall = time.monotonic() - started
+    return ModuleRun(suite, module, loop, outcomes, details, timed_out, wall, stderr_tail)
+
+
+def _attempt(
+    suite: str, module: str, loop: str, timeout: float, anyio_src: Path | None, skip: list[str]
+) -> tuple[dict[str, str], dict[str, str], int, str, bool]:
+    """One process over the module, minus ``skip``: (outcomes, details, exit status, stderr,
+    whether it hung and was killed)."""
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "results.jsonl"
+        skip_file = Path(tmp) / "skip.txt"
+        skip_file.write_text("".join(f"{test}\n" for test in skip), encoding="utf-8")
         env = dict(os.environ)
         env["EVCLOCK_CONFORMANCE_LOOP"] = loop
         env["EVCLOCK_CONFORMANCE_OUT"] = str(out)
+        env["EVCLOCK_CONFORMANCE_SKIP"] = str(skip_file)
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE), env.get("PYTHONPATH")]))
         cwd = anyio_src if suite == "anyio" else tmp
-        started = time.monotonic()
         proc = subprocess.Popen(
             command_for(suite, module, out, anyio_src),
             cwd=cwd,
@@ -147,33 +192,19 @@ def run_module(
             stderr=subprocess.PIPE,
             start_new_session=True,
         )
-        timed_out = False
+        hung = False
         try:
             _, stderr = proc.communicate(timeout=timeout)
         except subprocess.TimeoutExpired:
-            timed_out = True
+            hung = True
             os.killpg(proc.pid, signal.SIGABRT)  # faulthandler dumps every thread's stack
             try:
                 _, stderr = proc.communicate(timeout=_ABORT_GRACE)
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 _, stderr = proc.communicate(timeout=_ABORT_GRACE)
-        wall = time.monotonic() - started
         outcomes, details = read_results(out)
-    text = stderr.decode(errors="replace")
-    if timed_out:
-        for test, outcome in outcomes.items():
-            if outcome == "running":
-                outcomes[test] = "fail"
-                details[test] = f"module killed after {timeout:g} s while this test ran"
-    elif proc.returncode not in (0, 5) and not outcomes:  # crashed before any test (5: none)
-        outcomes[f"{module}::<module>"] = "fail"
-        details[f"{module}::<module>"] = f"exit status {proc.returncode}: {text[-2000:]}"
-    for test, outcome in outcomes.items():
-        if outcome == "running":  # the process died under this test
-            outcomes[test] = "fail"
-            details[test] = f"the process died (exit status {proc.returncode}) during this test"
-    return ModuleRun(suite, module, loop, outcomes, details, timed_out, wall, text[-6000:])
+    return outcomes, details, proc.returncode, stderr.decode(errors="replace"), hung
 
 
 def read_results(path: Path) -> tuple[dict[str, str], dict[str, str]]:
