@@ -173,11 +173,14 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._advance_directly = self._jump_when_idle = False
         self._update_fast_path()
         self._held_since: float | None = None
+        # OUTSIDE HOOK: registered fds that deliver nothing by themselves: the self-pipe,
+        # until a signal handler makes it carry signals (then it must be polled too).
+        self._quiet_fds = 1
         # OUTSIDE HOOK: what holds sim time and what can wake the loop (evclock/_outside.py).
         self._outside = OutsideWork(
             lambda: self._thread_id,
             lambda: len(self._io_map) > 1,
-            lambda: bool(getattr(self, "_signal_handlers", None)),
+            lambda: getattr(self, "_signal_handlers", None) or {},
             self._write_to_self,
             watch_threads=bool(watch_threads),
         )
@@ -230,7 +233,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if not -math.inf < delay < math.inf:
             return self.call_at(self.time() + delay, callback, *args, context=context)
         when_ns = self._now_ns + round(delay * 1e9)
-        return self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
+        timer = self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
+        if timer._source_traceback:  # type: ignore[attr-defined]
+            del timer._source_traceback[-1]  # type: ignore[attr-defined]  # debug: our frame
+        return timer
 
     def call_at(
         self,
@@ -292,7 +298,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 if (
                     self._advance_directly
                     and sched
-                    and len(io_map) <= 1
+                    and len(io_map) <= self._quiet_fds
                     and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
                     and (
                         len(_thread_registry) + len(_thread_limbo) <= 1
@@ -309,7 +315,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                         )
                 else:
                     self._idle()
-            elif len(io_map) > 1:
+            elif len(io_map) > self._quiet_fds:
                 self._poll_io(0)
             # Entries due now are taken before anything runs, so whatever the callbacks
             # below schedule for the same instant waits for the next iteration, as in asyncio.
@@ -464,7 +470,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 self._drop_cancelled_head()
             if sched and sched[0][0] <= self._now_ns:
                 return
-        if len(self._io_map) > 1 and self._poll_io(0):
+        if len(self._io_map) > self._quiet_fds and self._poll_io(0):
             return
         holder = self._outside.holder()  # OUTSIDE HOOK: is sim time held?
         if holder is not None:
@@ -575,6 +581,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         transport = await super()._make_subprocess_transport(*args, **kwargs)  # type: ignore[misc]
         self._outside.add_child(transport)
         return transport
+
+    def add_signal_handler(
+        self, sig: int, callback: Callable[[Unpack[_Ts]], object], *args: *_Ts
+    ) -> None:
+        super().add_signal_handler(sig, callback, *args)
+        self._quiet_fds = 0  # signals arrive through the self-pipe: poll it
+
+    def remove_signal_handler(self, sig: int) -> bool:
+        removed: bool = super().remove_signal_handler(sig)
+        self._quiet_fds = 0 if self._signal_handlers else 1  # type: ignore[attr-defined]
+        return removed
 
     async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
         # Hold sim time: 3.12+ wraps this in a 300 s timeout that must not fire in sim time.

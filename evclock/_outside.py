@@ -5,7 +5,8 @@ loop asks whenever nothing is runnable at the current sim time:
 
 **Is sim time held?** (:meth:`OutsideWork.holder`) Counted exactly where evclock can:
 
-* explicit holds (``loop.hold_time()``);
+* explicit holds (``loop.hold_time()``), and an armed wall-clock ``SIGALRM`` timer
+  (``signal.setitimer``) whose signal the loop handles (``add_signal_handler``);
 * executor jobs (``run_in_executor``, ``asyncio.to_thread``) from submission until their
   result is back on the loop, except while the job's thread is *parked* - blocked without
   timeout on a lock, condition or queue, which only another thread can end (a job waiting
@@ -33,9 +34,10 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import itertools
+import signal
 import threading
 from asyncio import subprocess as aio_subprocess
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import Any, TypeVar
 
 from ._threads import (
@@ -63,7 +65,7 @@ class OutsideWork:
         self,
         loop_thread_id: Callable[[], int | None],
         io_registered: Callable[[], bool],
-        signal_handlers: Callable[[], bool],
+        signal_handlers: Callable[[], Mapping[int, object]],
         wake_loop: Callable[[], None],
         *,
         watch_threads: bool,
@@ -136,7 +138,7 @@ class OutsideWork:
 
     def holder(self) -> str | None:
         """Whether sim time is held now: EXACT, INFERRED, or None."""
-        if self._holds:
+        if self._holds or self._alarm_pending():
             return EXACT
         threads: list[tuple[threading.Thread, ThreadState]] | None = None
         if self._jobs:
@@ -160,7 +162,7 @@ class OutsideWork:
 
     def can_wake(self) -> bool:
         """Whether anything outside the loop could still make a task runnable."""
-        if self._io_registered() or self._signal_handlers() or self.active:
+        if self._io_registered() or bool(self._signal_handlers()) or self.active:
             return True
         if self.watch_threads:
             return any(state in WAKING_STATES for _, state in survey(self._loop_thread_id()))
@@ -193,6 +195,16 @@ class OutsideWork:
         return "\n".join(lines) or "  nothing any more (it just ended)"
 
     # ------------------------------------------------------------- internals
+
+    def _alarm_pending(self) -> bool:
+        """A wall-clock SIGALRM is armed (``signal.setitimer``/``alarm``) and the loop
+        handles it: a wall-time event is on its way, like a thread's timed sleep."""
+        sigalrm = getattr(signal, "SIGALRM", None)
+        return (
+            sigalrm is not None
+            and sigalrm in self._signal_handlers()
+            and signal.getitimer(signal.ITIMER_REAL)[0] > 0
+        )
 
     def _job_threads(self) -> set[int]:
         return {where for _, where in list(self._jobs.values()) if where >= 0}

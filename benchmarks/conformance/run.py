@@ -159,11 +159,13 @@ def run_module(
         if hung:
             timed_out = True
             break
-        if not culprit:
-            if returncode not in (0, 1, 5) and not new:  # crashed outside any test (5: none)
-                outcomes[f"{module}::<module>"] = "fail"
-                details[f"{module}::<module>"] = f"exit status {returncode}: {stderr[-2000:]}"
+        if not culprit and returncode in (0, 1, 5):  # the run ended normally (5: no tests)
             break
+        if not new:  # died before running any test: the module itself is broken
+            outcomes[f"{module}::<module>"] = "fail"
+            details[f"{module}::<module>"] = f"exit status {returncode}: {stderr[-2000:]}"
+            break
+        # Died between or under tests (a stray signal, a per-test timeout): go on.
     wall = time.monotonic() - started
     return ModuleRun(suite, module, loop, outcomes, details, timed_out, wall, stderr_tail)
 
