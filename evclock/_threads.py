@@ -32,6 +32,7 @@ import sys
 import threading
 import traceback
 import weakref
+from asyncio import base_events
 from types import CodeType, FrameType
 
 from ._errors import InvalidArgumentError
@@ -87,14 +88,19 @@ _WAITS_ON_OTHERS: frozenset[CodeType] = _JOIN_CODES | {
     concurrent.futures.Future.result.__code__,
     concurrent.futures.Future.exception.__code__,
 }
+#: A stock asyncio loop's iteration: in a thread that waits in its selector, the timeout
+#: is the loop's next timer, a real delay (anyio's blocking portal sleeping, say).
+_ASYNCIO_RUN_ONCE: CodeType = base_events.BaseEventLoop._run_once.__code__  # type: ignore[attr-defined]
+_ASYNCIO_LOOP = ThreadState.RUNNING  # marker returned by _waits_on_another_party
 #: How many frames outward from the innermost one are searched for a known wait: wrappers
 #: around lock acquisition (blockbuster, tracers) add a few.
 _FRAME_DEPTH = 6
 
 
 def _waits_on_another_party(frame: FrameType | None) -> ThreadState | None:
-    """EVENT_LOOP or PARKED when the innermost frames show a wait that another party ends
-    (whatever its timeout), else None."""
+    """What the innermost frames say: EVENT_LOOP (a simulation loop waiting), PARKED (a
+    wait that another party ends, whatever its timeout), RUNNING_LOOP (a stock asyncio
+    loop: the kernel decides, its timeout being its next timer), or None."""
     for _ in range(_FRAME_DEPTH):
         if frame is None:
             return None
@@ -103,6 +109,8 @@ def _waits_on_another_party(frame: FrameType | None) -> ThreadState | None:
             return ThreadState.EVENT_LOOP
         if code in _WAITS_ON_OTHERS:
             return ThreadState.PARKED
+        if code is _ASYNCIO_RUN_ONCE:
+            return _ASYNCIO_LOOP
         frame = frame.f_back
     return None
 
@@ -132,39 +140,40 @@ def _state_from_frames(frame: FrameType) -> ThreadState:
 
 # ----------------------------------------------------------- the kernel's view (Linux)
 
-# System calls a blocked thread can sit in, by number, per architecture, with where its
-# timeout is: ("ptr", i) a pointer argument (0 = none), ("ms", i) an int of milliseconds
-# (negative = none), FUTEX the futex rules, SLEEP a timed sleep, PAUSE no timeout at all.
-# Any other system call (read, recv, accept, wait4, ...) is I/O without a timeout.
-_Rule = tuple[str, int]
-FUTEX: _Rule = ("futex", 0)
-SLEEP: _Rule = ("sleep", 0)
-PAUSE: _Rule = ("pause", 0)
+# System calls a blocked thread can sit in, by number, per architecture: (kind, timeout
+# argument, file-descriptor count argument). Kinds: "ms" an int of milliseconds (negative =
+# none), "ptr" a pointer (0 = none), FUTEX the futex rules, SLEEP a timed sleep, PAUSE no
+# timeout at all. The fd count is -1 when the call always watches descriptors (epoll), None
+# when it watches none. Any other system call (read, recv, accept, wait4, ...) is I/O.
+_Rule = tuple[str, int, int | None]
+FUTEX: _Rule = ("futex", 3, None)
+SLEEP: _Rule = ("sleep", 0, None)
+PAUSE: _Rule = ("pause", 0, None)
 _X86_64: dict[int, _Rule] = {
-    7: ("ms", 2),  # poll
-    23: ("ptr", 4),  # select
+    7: ("ms", 2, 1),  # poll
+    23: ("ptr", 4, 0),  # select
     34: PAUSE,  # pause
     35: SLEEP,  # nanosleep
-    128: ("ptr", 2),  # rt_sigtimedwait
+    128: ("ptr", 2, None),  # rt_sigtimedwait
     202: FUTEX,
     230: SLEEP,  # clock_nanosleep
-    232: ("ms", 3),  # epoll_wait
-    270: ("ptr", 4),  # pselect6
-    271: ("ptr", 2),  # ppoll
-    281: ("ms", 3),  # epoll_pwait
-    441: ("ptr", 3),  # epoll_pwait2
-    449: ("ptr", 3),  # futex_waitv
+    232: ("ms", 3, -1),  # epoll_wait
+    270: ("ptr", 4, 0),  # pselect6
+    271: ("ptr", 2, 1),  # ppoll
+    281: ("ms", 3, -1),  # epoll_pwait
+    441: ("ptr", 3, -1),  # epoll_pwait2
+    449: ("ptr", 3, None),  # futex_waitv
 }
 _AARCH64: dict[int, _Rule] = {
-    22: ("ms", 3),  # epoll_pwait
-    72: ("ptr", 4),  # pselect6
-    73: ("ptr", 2),  # ppoll
+    22: ("ms", 3, -1),  # epoll_pwait
+    72: ("ptr", 4, 0),  # pselect6
+    73: ("ptr", 2, 1),  # ppoll
     98: FUTEX,
     101: SLEEP,  # nanosleep
     115: SLEEP,  # clock_nanosleep
-    137: ("ptr", 2),  # rt_sigtimedwait
-    441: ("ptr", 3),  # epoll_pwait2
-    449: ("ptr", 3),  # futex_waitv
+    137: ("ptr", 2, None),  # rt_sigtimedwait
+    441: ("ptr", 3, -1),  # epoll_pwait2
+    449: ("ptr", 3, None),  # futex_waitv
 }
 _SYSCALLS: dict[int, _Rule] | None = {"x86_64": _X86_64, "aarch64": _AARCH64}.get(
     platform.machine()
@@ -173,28 +182,35 @@ _FUTEX_CMD_MASK = 0x7F  # without FUTEX_PRIVATE_FLAG (128) and FUTEX_CLOCK_REALT
 _FUTEX_WAITS = frozenset({0, 6, 9, 11, 13})  # WAIT, LOCK_PI, WAIT_BITSET, WAIT_REQUEUE_PI, LOCK_PI2
 
 
-def _state_from_syscall(text: str) -> ThreadState:
-    """Classify one ``/proc/.../syscall`` line: "running", or "nr arg0 .. arg5 sp pc"."""
+def _state_from_syscall(text: str, event_loop: bool) -> ThreadState:
+    """Classify one ``/proc/.../syscall`` line: "running", or "nr arg0 .. arg5 sp pc".
+
+    A wait on file descriptors (select, poll, epoll, a socket with a timeout) is waiting for
+    I/O whatever its timeout - a safety bound or a periodic check, not work - except in a
+    thread running an asyncio loop (``event_loop``), whose timeout is its next timer.
+    """
     fields = text.split()
     if not fields or fields[0] == "running" or fields[0] == "-1":
         return ThreadState.RUNNING  # "-1": blocked outside a system call (a page fault)
     assert _SYSCALLS is not None
-    number = int(fields[0])
     args = [int(value, 16) for value in fields[1:7]]
-    rule = _SYSCALLS.get(number)
+    rule = _SYSCALLS.get(int(fields[0]))
     if rule is None:
         return ThreadState.WAITING_IO  # read, recv, accept, wait4, ...: no timeout of its own
-    kind, index = rule
     if rule is PAUSE:
         return ThreadState.PARKED  # pause(): only a signal ends it
     if rule is SLEEP:
         return ThreadState.TIMED
+    kind, timeout_arg, fds_arg = rule
     if rule is FUTEX:
         command = args[1] & _FUTEX_CMD_MASK
         if command not in _FUTEX_WAITS:
             return ThreadState.RUNNING  # a wake or requeue: over in an instant
-        return ThreadState.TIMED if args[3] else ThreadState.PARKED
-    value = args[index]
+        return ThreadState.TIMED if args[timeout_arg] else ThreadState.PARKED
+    watches_fds = fds_arg is not None and (fds_arg < 0 or args[fds_arg] != 0)
+    if watches_fds and not event_loop:
+        return ThreadState.WAITING_IO
+    value = args[timeout_arg]
     # "ms": a negative int means no timeout; "ptr": a null pointer does.
     timed = value & 0x80000000 == 0 if kind == "ms" else value != 0
     return ThreadState.TIMED if timed else ThreadState.WAITING_IO
@@ -251,15 +267,14 @@ def check_thread_inference() -> None:
 
 def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadState:
     """The state of ``thread``, whose innermost Python frame is ``frame`` (None: none yet)."""
-    if frame is not None:
-        waiting = _waits_on_another_party(frame)
-        if waiting is not None:
-            return waiting
+    from_frames = _waits_on_another_party(frame)
+    if from_frames is not None and from_frames is not _ASYNCIO_LOOP:
+        return from_frames
     native_id = thread.native_id
     if _kernel is not None and native_id is not None:
         text = _kernel.read(native_id)
         if text is not None:
-            return _state_from_syscall(text)
+            return _state_from_syscall(text, event_loop=from_frames is _ASYNCIO_LOOP)
     if frame is None:
         return ThreadState.RUNNING  # starting or finishing
     return _state_from_frames(frame)
