@@ -181,6 +181,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             lambda: self._thread_id,
             lambda: len(self._io_map) > 1,
             lambda: getattr(self, "_signal_handlers", None) or {},
+            lambda: self._io_map.values(),
             self._write_to_self,
             watch_threads=bool(watch_threads),
         )

@@ -17,7 +17,9 @@ loop asks whenever nothing is runnable at the current sim time:
   see what is awaited). A child nobody waits on does not hold: a long-running helper
   process lets the simulation run; its output and its exit still wake the loop.
 
-Inferred for every other thread, daemon or not (unless ``watch_threads=False``), from what
+Inferred: socket bytes the loop wrote that the kernel is still delivering (Linux; they
+hold while their count moves, up to ``IN_FLIGHT_PATIENCE`` when it does not). And every
+other thread, daemon or not (unless ``watch_threads=False``), from what
 the kernel says it is doing (see :mod:`evclock._threads`): running or sleeping with a
 timeout holds; parked, blocked on I/O without timeout, or an event loop waiting does not.
 
@@ -34,10 +36,13 @@ from __future__ import annotations
 import asyncio
 import concurrent.futures
 import itertools
+import selectors
 import signal
+import sys
 import threading
+import time
 from asyncio import subprocess as aio_subprocess
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 from ._threads import (
@@ -56,6 +61,17 @@ _T = TypeVar("_T")
 EXACT, INFERRED = "exact", "inferred"
 
 _QUEUED, _RESULT_IN_FLIGHT = -1, -2
+#: Wall seconds unsent TCP bytes may stay unchanged and still count as in flight.
+IN_FLIGHT_PATIENCE = 0.2
+
+try:  # Linux: the unsent/unacknowledged bytes of a TCP socket
+    import fcntl
+    import struct
+    import termios
+
+    _TIOCOUTQ: int | None = termios.TIOCOUTQ if sys.platform.startswith("linux") else None
+except ImportError:  # pragma: no cover - Windows
+    _TIOCOUTQ = None
 
 
 class OutsideWork:
@@ -66,6 +82,7 @@ class OutsideWork:
         loop_thread_id: Callable[[], int | None],
         io_registered: Callable[[], bool],
         signal_handlers: Callable[[], Mapping[int, object]],
+        registered: Callable[[], Iterable[selectors.SelectorKey]],
         wake_loop: Callable[[], None],
         *,
         watch_threads: bool,
@@ -73,6 +90,9 @@ class OutsideWork:
         self._loop_thread_id = loop_thread_id
         self._io_registered = io_registered
         self._signal_handlers = signal_handlers
+        self._registered = registered
+        self._in_flight: dict[int, int] = {}  # fd -> bytes the kernel has not delivered
+        self._in_flight_since = 0.0
         self._wake_loop = wake_loop
         self.watch_threads = watch_threads
         self._lock = threading.Lock()
@@ -151,6 +171,8 @@ class OutsideWork:
                     return EXACT
         if self._children and self._children_hold():
             return EXACT
+        if _TIOCOUTQ is not None and self._bytes_in_flight():
+            return INFERRED
         if self.watch_threads:
             if threads is None:
                 threads = survey(self._loop_thread_id())
@@ -195,6 +217,29 @@ class OutsideWork:
         return "\n".join(lines) or "  nothing any more (it just ended)"
 
     # ------------------------------------------------------------- internals
+
+    def _bytes_in_flight(self) -> bool:
+        """Bytes the loop wrote to a TCP socket that the kernel has not delivered yet: on
+        loopback they arrive within milliseconds (an in-process TLS peer's close_notify),
+        so they hold sim time while that count moves. Bytes that stay put for
+        ``IN_FLIGHT_PATIENCE`` are not in flight: the peer is not reading (its window is
+        full), which is the peer's business, not the kernel's."""
+        assert _TIOCOUTQ is not None
+        pending = {}
+        for key in list(self._registered()):
+            # Transports register bare fds: ask every one; what is not a socket says so
+            # (ENOTTY). A Unix socket counts its peer's unread bytes: bounded the same way.
+            try:
+                unsent = struct.unpack("i", fcntl.ioctl(key.fd, _TIOCOUTQ, b"\0\0\0\0"))[0]
+            except OSError:
+                continue
+            if unsent:
+                pending[key.fd] = unsent
+        now = time.monotonic()
+        if pending != self._in_flight:
+            self._in_flight = pending
+            self._in_flight_since = now
+        return bool(pending) and now - self._in_flight_since < IN_FLIGHT_PATIENCE
 
     def _alarm_pending(self) -> bool:
         """A wall-clock SIGALRM is armed (``signal.setitimer``/``alarm``) and the loop

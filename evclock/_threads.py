@@ -43,15 +43,17 @@ class ThreadState(enum.Enum):
 
     #: Executing (or runnable): it may hand the loop a result any moment. Holds sim time.
     RUNNING = "running"
-    #: Sleeping with a wall-time timeout (``time.sleep``, ``Event.wait(0.05)``, a socket
-    #: timeout, ``threading.Timer``): it wakes by itself. Holds sim time.
+    #: Sleeping with a wall-time timeout (``time.sleep``, ``Event.wait(0.05)``,
+    #: ``Queue.get(timeout=...)``, ``threading.Timer``, a stock asyncio loop waiting for its
+    #: next timer): it wakes by itself. Holds sim time.
     TIMED = "waiting with a timeout"
     #: Waiting without timeout for another thread of this process (a lock, a condition, a
     #: queue, a join): it neither holds sim time nor can wake the loop by itself.
     PARKED = "parked"
-    #: Blocked without timeout on a file descriptor or a child process (``recv``,
-    #: ``accept``, ``read``, ``waitpid``): waiting for the world outside (often the loop's
-    #: own sockets). It does not hold sim time, but it may wake the loop.
+    #: Blocked on file descriptors or a child process (``recv``, ``accept``, ``read``,
+    #: ``select``, ``waitpid``), with or without a timeout (on I/O a timeout is a safety
+    #: bound): waiting for the world outside, often the loop's own sockets. It does not hold
+    #: sim time, but it may wake the loop.
     WAITING_IO = "waiting for I/O"
     #: A simulation loop waiting in its selector: it follows its own time.
     EVENT_LOOP = "an event loop waiting"
