@@ -65,6 +65,8 @@ _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # ty
 
 #: Default wall-time limit for sim time being held by outside work or an I/O wait.
 DEFAULT_STALL_TIMEOUT = 60.0
+#: Wall seconds between the two looks that confirm a deadlock (see _wait_for_io_or_deadlock).
+_DEADLOCK_CONFIRM = 0.02
 #: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
 _THREAD_POLL = 0.001
 
@@ -473,10 +475,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 return
         if len(self._io_map) > self._quiet_fds and self._poll_io(0):
             return
-        holder = self._outside.holder()  # OUTSIDE HOOK: is sim time held?
+        holder = self._outside.holder()  # OUTSIDE HOOK: is sim time held (and how far not)?
         if holder is not None:
-            self._wait_for_outside_work(holder)
-            return
+            horizon = self._outside.horizon_ns
+            if horizon is None or not sched or sched[0][0] - self._now_ns > horizon:
+                self._wait_for_outside_work(holder)
+                return
         if self._ready:
             return  # a thread handed work over while we looked
         target = sched[0][0] if sched else None
@@ -533,7 +537,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._poll_io(timeout)
 
     def _wait_for_io_or_deadlock(self) -> None:
-        if not self._outside.can_wake():  # OUTSIDE HOOK: could anything wake us?
+        # OUTSIDE HOOK: could anything wake us? Asked twice, a moment apart: a thread seen
+        # parked may just have been woken by one that has parked since (a hand-off chain).
+        if not self._outside.can_wake() and not (
+            self._poll_io(_DEADLOCK_CONFIRM) or self._outside.can_wake()
+        ):
             raise DeadlockError(
                 "deadlock: every task is waiting and nothing can wake one "
                 f"(no timer is scheduled, {self._source.describe()} cannot advance on its "

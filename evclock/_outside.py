@@ -52,6 +52,7 @@ from ._threads import (
     describe_thread,
     survey,
     thread_state,
+    wait_deadline,
 )
 
 _T = TypeVar("_T")
@@ -93,6 +94,7 @@ class OutsideWork:
         self._registered = registered
         self._in_flight: dict[int, int] = {}  # fd -> bytes the kernel has not delivered
         self._in_flight_since = 0.0
+        self.horizon_ns: int | None = None
         self._wake_loop = wake_loop
         self.watch_threads = watch_threads
         self._lock = threading.Lock()
@@ -157,7 +159,14 @@ class OutsideWork:
     # ------------------------------------------------------------- questions
 
     def holder(self) -> str | None:
-        """Whether sim time is held now: EXACT, INFERRED, or None."""
+        """Whether sim time is held now: EXACT, INFERRED, or None.
+
+        When held only by threads in timed waits of known length (``Event.wait(3)``),
+        :attr:`horizon_ns` says how far sim time may still move: as on stock asyncio, where
+        loop timers and thread timeouts race on one clock, what is due before the first of
+        those waits ends happens first. Otherwise it is None: sim time stands still.
+        """
+        self.horizon_ns = None
         if self._holds or self._alarm_pending():
             return EXACT
         threads: list[tuple[threading.Thread, ThreadState]] | None = None
@@ -177,9 +186,18 @@ class OutsideWork:
             if threads is None:
                 threads = survey(self._loop_thread_id())
             jobs = self._job_threads()
+            horizon = None
             for thread, state in threads:
-                if state in HOLDING_STATES and thread.ident not in jobs:
-                    return INFERRED
+                if state not in HOLDING_STATES or thread.ident in jobs:
+                    continue
+                deadline = wait_deadline(thread) if state is ThreadState.TIMED else None
+                if deadline is None:
+                    return INFERRED  # running, or a timed wait of unknown length
+                remaining = max(deadline - time.monotonic(), 0.0)
+                horizon = remaining if horizon is None else min(horizon, remaining)
+            if horizon is not None:
+                self.horizon_ns = round(horizon * 1e9)
+                return INFERRED
         return None
 
     def can_wake(self) -> bool:

@@ -30,6 +30,7 @@ import os
 import platform
 import sys
 import threading
+import time
 import traceback
 import weakref
 from asyncio import base_events
@@ -219,33 +220,45 @@ def _state_from_syscall(text: str, event_loop: bool) -> ThreadState:
 
 
 class _KernelView:
-    """Reads each thread's current system call from ``/proc``; one open file per thread."""
+    """Reads each thread's scheduler state and current system call from ``/proc``; two
+    open files per thread, re-read with ``pread``."""
 
     def __init__(self) -> None:
-        self._files: dict[int, int] = {}
+        self._files: dict[int, tuple[int, int]] = {}
 
     def read(self, native_id: int) -> str | None:
-        fd = self._files.get(native_id)
+        """The thread's ``syscall`` line, or "running" when the scheduler has it runnable:
+        a thread woken (a futex released, bytes arrived) but not yet on a CPU still shows
+        the system call it is leaving."""
+        files = self._files.get(native_id)
         try:
-            if fd is None:
-                fd = os.open(f"/proc/self/task/{native_id}/syscall", os.O_RDONLY)
-                self._files[native_id] = fd
-            return os.pread(fd, 256, 0).decode("ascii", "replace")
+            if files is None:
+                task = f"/proc/self/task/{native_id}"
+                files = (
+                    os.open(f"{task}/syscall", os.O_RDONLY),
+                    os.open(f"{task}/stat", os.O_RDONLY),
+                )
+                self._files[native_id] = files
+            syscall = os.pread(files[0], 256, 0).decode("ascii", "replace")
+            stat = os.pread(files[1], 1024, 0).decode("ascii", "replace")
         except OSError:
             return None
+        state = stat.rpartition(")")[2].split()[:1]
+        return "running" if state == ["R"] else syscall
 
     def forget_except(self, alive: set[int]) -> None:
         for native_id in [n for n in self._files if n not in alive]:
-            os.close(self._files.pop(native_id))
+            for fd in self._files.pop(native_id):
+                os.close(fd)
 
 
 def _kernel_view_works() -> bool:
     if _SYSCALLS is None or not sys.platform.startswith("linux"):
         return False
     probe = _KernelView()
-    text = probe.read(threading.get_native_id())  # this thread: inside pread64()
+    text = probe.read(threading.get_native_id())  # this thread: running
     probe.forget_except(set())
-    return text is not None and text.split()[:1] != [] and text.split()[0].isdigit()
+    return text == "running"
 
 
 _kernel: _KernelView | None = _KernelView() if _kernel_view_works() else None
@@ -270,13 +283,19 @@ def check_thread_inference() -> None:
 def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadState:
     """The state of ``thread``, whose innermost Python frame is ``frame`` (None: none yet)."""
     from_frames = _waits_on_another_party(frame)
-    if from_frames is not None and from_frames is not _ASYNCIO_LOOP:
+    if from_frames is ThreadState.EVENT_LOOP:
         return from_frames
     native_id = thread.native_id
-    if _kernel is not None and native_id is not None:
-        text = _kernel.read(native_id)
+    text = _kernel.read(native_id) if _kernel is not None and native_id is not None else None
+    if from_frames is ThreadState.PARKED:
+        # Waiting on another party - unless already woken (then it is about to deliver).
         if text is not None:
-            return _state_from_syscall(text, event_loop=from_frames is _ASYNCIO_LOOP)
+            return ThreadState.RUNNING if text == "running" else ThreadState.PARKED
+        assert frame is not None
+        woken = _state_from_frames(frame) is ThreadState.RUNNING
+        return ThreadState.RUNNING if woken else ThreadState.PARKED
+    if text is not None:
+        return _state_from_syscall(text, event_loop=from_frames is _ASYNCIO_LOOP)
     if frame is None:
         return ThreadState.RUNNING  # starting or finishing
     return _state_from_frames(frame)
@@ -314,7 +333,41 @@ def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadSta
     result = [(t, thread_state(t, frames.get(t.ident or 0))) for t in threads]
     if _kernel is not None:
         _kernel.forget_except({t.native_id for t in threads if t.native_id is not None})
+    alive = {t.ident for t in threads}
+    for ident in [i for i in _timed_waits if i not in alive]:
+        del _timed_waits[ident]
     return result
+
+
+#: Per thread: the Condition.wait it is in (its waiter lock) and when that wait times out.
+_timed_waits: dict[int, tuple[object, float]] = {}
+
+
+def wait_deadline(thread: threading.Thread) -> float | None:
+    """When ``thread``'s current timed wait ends by itself (``time.monotonic()`` seconds),
+    if it is a ``Condition.wait(timeout)`` (``Event.wait``, ``Queue.get``, ``Timer``);
+    None when unknown (``time.sleep``, a C library's wait).
+
+    The wait is timed from the first time it is seen, which is at or after its start: the
+    deadline may be late, never early (time is held a little longer, never too little).
+    """
+    ident = thread.ident or 0
+    frame: FrameType | None = sys._current_frames().get(ident)
+    for _ in range(_FRAME_DEPTH):
+        if frame is None:
+            break
+        if frame.f_code is _CONDITION_WAIT:
+            timeout = frame.f_locals.get("timeout")
+            waiter = frame.f_locals.get("waiter")
+            if not isinstance(timeout, int | float) or waiter is None:
+                return None
+            seen = _timed_waits.get(ident)
+            if seen is None or seen[0] is not waiter:
+                seen = _timed_waits[ident] = (waiter, time.monotonic() + max(timeout, 0))
+            return seen[1]
+        frame = frame.f_back
+    _timed_waits.pop(ident, None)
+    return None
 
 
 def describe_thread(thread: threading.Thread, state: ThreadState) -> str:
