@@ -31,7 +31,7 @@ import math
 import selectors
 import threading
 import time
-from asyncio import events, futures
+from asyncio import base_events, events, futures
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
@@ -362,9 +362,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             handle._run()
             dt = time.monotonic() - t0
             if dt >= self.slow_callback_duration:
-                from asyncio.log import logger
-
-                logger.warning("Executing %s took %.3f seconds of wall time", handle, dt)
+                # asyncio's own logger and message (wall seconds), as tools filter on both.
+                base_events.logger.warning(  # type: ignore[attr-defined]
+                    "Executing %s took %.3f seconds",
+                    base_events._format_handle(handle),  # type: ignore[attr-defined]
+                    dt,
+                )
         finally:
             self._current_handle = None
 
