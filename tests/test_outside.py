@@ -154,6 +154,24 @@ def test_a_thread_that_waits_with_a_timeout_holds_sim_time(wait: str) -> None:
     assert evclock.run(main()) == (wait, 0.0)
 
 
+def test_a_long_timed_wait_lets_earlier_sim_timers_fire_first() -> None:
+    """As on stock asyncio, where loop timers and thread timeouts race on one clock: a
+    thread's 3 s safety timeout does not keep a 0.1 s sleep from ending first."""
+
+    async def main() -> tuple[list[bool], float]:
+        event = threading.Event()
+        woke: list[bool] = []
+        thread = threading.Thread(target=lambda: woke.append(event.wait(3)))
+        thread.start()
+        await asyncio.sleep(0.1)  # ends before the thread's wait would time out
+        at = sim_time()
+        event.set()
+        await asyncio.to_thread(thread.join, 10)
+        return woke, at
+
+    assert evclock.run(main()) == ([True], 0.1)
+
+
 @pytest.mark.parametrize("blocker", ["lock", "simple_queue"])
 def test_a_thread_blocked_on_what_only_the_loop_releases_does_not_hold(blocker: str) -> None:
     async def main() -> tuple[str, float]:
