@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import signal
 import sys
 
 import evclock
@@ -25,6 +26,9 @@ LOOP_ENV = "EVCLOCK_CONFORMANCE_LOOP"
 
 def install_if_requested() -> str:
     """Install ``SimEventLoop`` when the environment asks for it; return the loop's name."""
+    # A runner started in the background (``cmd &``) hands its children SIGINT ignored;
+    # test_asyncio's interrupt tests need Python's own handler, on either loop.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     which = os.environ.get(LOOP_ENV, "default")
     if which == "sim":
         asyncio.SelectorEventLoop = evclock.SimEventLoop  # type: ignore[misc]
