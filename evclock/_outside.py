@@ -103,21 +103,21 @@ class OutsideWork:
         self._jobs: dict[int, tuple[str, int]] = {}
         self._tokens = itertools.count()
         self._children: list[asyncio.SubprocessTransport] = []
+        #: How many exactly-counted things are in flight (holds, jobs, children): a plain
+        #: attribute, read on the loop's hot path.
+        self.active = 0
 
     # ----------------------------------------------------------- bookkeeping
-
-    @property
-    def active(self) -> int:
-        """How many exactly-counted things are in flight (holds, jobs, children)."""
-        return self._holds + len(self._jobs) + len(self._children)
 
     def add_hold(self) -> None:
         with self._lock:
             self._holds += 1
+            self.active += 1
 
     def release_hold(self) -> None:
         with self._lock:
             self._holds -= 1
+            self.active -= 1
         if threading.get_ident() != self._loop_thread_id():
             self._wake_loop()  # released from another thread: re-decide now, not at next poll
 
@@ -132,6 +132,7 @@ class OutsideWork:
         what = getattr(func, "__qualname__", None) or repr(func)
         with self._lock:
             self._jobs[token] = (what, _QUEUED)
+            self.active += 1
         if executor is not None and not isinstance(executor, concurrent.futures.ThreadPoolExecutor):
             return token, func
 
@@ -150,11 +151,14 @@ class OutsideWork:
     def job_done(self, token: int) -> None:
         """The job's result reached the loop (its asyncio future is done)."""
         with self._lock:
-            self._jobs.pop(token, None)
+            if self._jobs.pop(token, None) is not None:
+                self.active -= 1
 
     def add_child(self, transport: asyncio.SubprocessTransport) -> None:
         """A child process the loop started (its transport, once connected)."""
-        self._children.append(transport)
+        with self._lock:
+            self._children.append(transport)
+            self.active += 1
 
     # ------------------------------------------------------------- questions
 
@@ -293,7 +297,9 @@ class OutsideWork:
                 continue
             kept.append(child)
             holds = holds or self._child_holds(child)
-        self._children[:] = kept
+        with self._lock:
+            self.active -= len(self._children) - len(kept)
+            self._children[:] = kept
         return holds
 
     @staticmethod
