@@ -112,6 +112,6 @@ def test_evclock_run_without_pybullet_exits_2_naming_the_extra() -> None:
     )
     assert result.returncode == 2, result.stderr
     assert "error: the bundled scenarios (evclock_sims) needs 'pybullet', which is not " in (
-        " ".join(result.stdout.split())
+        " ".join(result.stderr.split())
     )
-    assert "pip install 'evclock[pybullet]'" in " ".join(result.stdout.split())
+    assert "pip install 'evclock[pybullet]'" in " ".join(result.stderr.split())
