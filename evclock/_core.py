@@ -375,6 +375,8 @@ class SimCore:
         host = self.host
         if host.time_held():
             return HELD
+        if self._anything_runnable():
+            return DUE  # a thread handed work over (and ended) while the host looked
         source = self.source
         if target is None and not source.free_running:
             return WAIT_IO if host.could_wake() else DEADLOCK

@@ -28,7 +28,7 @@ import operator
 import selectors
 import threading
 import time
-from asyncio import events
+from asyncio import base_events, events
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
@@ -41,9 +41,10 @@ from ._errors import (
     NotRunningError,
     StallError,
 )
+from ._outside import EXACT, OutsideWork
 from ._pacing import DEFAULT_MAX_LAG, PacingControls
 from ._tasks import describe_tasks
-from ._threads import busy_threads, could_call_back
+from ._threads import EVENT_LOOP_WAITS, check_thread_inference, could_call_back, internal_count
 from ._time import MAX_TIME_NS, real_number
 from .sources import TimeSource, VirtualTimeSource
 
@@ -63,6 +64,8 @@ _thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # ty
 DEFAULT_STALL_TIMEOUT = 60.0
 #: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
 _THREAD_POLL = 0.001
+#: Wall seconds between the two looks that confirm a deadlock (see could_wake).
+_DEADLOCK_CONFIRM = 0.02
 #: While an external source waits for the outside, ask it again this often (wall seconds)
 #: even if no I/O arrives, so that it can check its own liveness deadline.
 _EXTERNAL_POLL = 0.05
@@ -103,7 +106,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         executor jobs) or by waiting for I/O before :class:`StallError`; None waits forever.
     :param paused: start paused (see :meth:`resume` and :meth:`step`).
     :param watch_threads: hold sim time while other non-daemon threads are busy (default).
-    :param selector: the selector serving I/O (default: the platform's best).
+    :param selector: the selector serving I/O (default: the platform's best). It may also
+        be passed as the first positional argument, as to ``asyncio.SelectorEventLoop``.
     :param wall: the wall clock pacing reads, in seconds (default ``time.perf_counter``);
         tests inject a fake one.
     """
@@ -119,6 +123,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         _debug: bool
 
         def _check_thread(self) -> None: ...
+        def _write_to_self(self) -> None: ...
 
         def _process_events(self, event_list: list[Any]) -> None: ...
         def _check_callback(self, callback: object, method: str) -> None: ...
@@ -140,6 +145,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         selector: Any = None,
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
+        if isinstance(source, selectors.BaseSelector) and selector is None:
+            # OUTSIDE HOOK: SimEventLoop(selector), like SelectorEventLoop(selector).
+            source, selector = None, source
         if source is None:
             source = VirtualTimeSource()
         elif not isinstance(source, TimeSource):
@@ -149,6 +157,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             )
         # Validate everything before the selector (a resource) exists.
         self._stall_timeout = check_stall_timeout(stall_timeout)
+        if watch_threads:
+            check_thread_inference()
         self._core = core = SimCore(
             source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
         )
@@ -168,10 +178,21 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             core.pacer.pause()
         self._fast_path = False
         self._update_fast_path()
-        self._holds = 0
-        self._holds_lock = threading.Lock()
         self._held_since: float | None = None
-        self._watch_threads = bool(watch_threads)
+        # OUTSIDE HOOK: registered fds that deliver nothing by themselves: the self-pipe,
+        # until a signal handler makes it carry signals (then it must be polled too).
+        self._quiet_fds = 1
+        # OUTSIDE HOOK: what holds sim time and what can wake the loop (evclock/_outside.py).
+        self._outside = OutsideWork(
+            lambda: self._thread_id,
+            lambda: len(self._io_map) > 1,
+            lambda: getattr(self, "_signal_handlers", None) or {},
+            lambda: self._io_map.values(),
+            self._write_to_self,
+            watch_threads=bool(watch_threads),
+        )
+        #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
+        self._holder: str | None = None
         self._sim_clock: SimClock | None = None
 
     # ----------------------------------------------------------------- time
@@ -214,7 +235,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if not -_MAX_TIME_S < delay < _MAX_TIME_S:
             return self.call_at(self.time() + delay, callback, *args, context=context)
         when_ns = self._core.now_ns + round(delay * 1e9)
-        return self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
+        timer = self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
+        if timer._source_traceback:  # type: ignore[attr-defined]
+            del timer._source_traceback[-1]  # type: ignore[attr-defined]  # debug: our frame
+        return timer
 
     def call_at(
         self,
@@ -280,7 +304,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         core = self._core
         wake_next = core.wake_next
         while True:
-            io_registered = len(io_map) > 1
+            io_registered = len(io_map) > self._quiet_fds  # OUTSIDE HOOK: signals too
             if io_registered:
                 self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
@@ -290,8 +314,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 if (
                     self._fast_path
                     and not io_registered
-                    and not self._holds
-                    and (len(_thread_registry) + len(_thread_limbo) <= 1 or self._only_daemons())
+                    and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
+                    and len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
                 ):
                     if self._held_since is not None:
                         self._held_since = None  # nothing holds time any more
@@ -324,9 +348,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             handle._run()
             dt = time.monotonic() - t0
             if dt >= self.slow_callback_duration:
-                from asyncio.log import logger
-
-                logger.warning("Executing %s took %.3f seconds of wall time", handle, dt)
+                # asyncio's own logger and message (wall seconds), as tools filter on both.
+                base_events.logger.warning(  # type: ignore[attr-defined]
+                    "Executing %s took %.3f seconds",
+                    base_events._format_handle(handle),  # type: ignore[attr-defined]
+                    dt,
+                )
         finally:
             self._current_handle = None
 
@@ -347,7 +374,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             raise DeadlockError(
                 "deadlock: every task is waiting and nothing can wake one "
                 f"(no timer is scheduled, {self._source.describe()} cannot advance on its "
-                "own, no I/O is registered and no other thread is working). Waiting tasks:\n"
+                "own, no I/O or signal handler is registered, no child process runs and no "
+                "other thread is working or waiting for I/O). Waiting tasks:\n"
                 + "\n".join(f"  {line}" for line in self._describe_waiting_tasks()),
                 self._describe_waiting_tasks(),
             )
@@ -361,17 +389,31 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         return bool(self._ready)
 
     def time_held(self) -> bool:
-        """Is sim time held by work outside the loop (executor jobs, holds, busy threads)?"""
-        return bool(self._holds) or (
-            self._watch_threads
-            and len(_thread_registry) + len(_thread_limbo) > 1
-            and not self._only_daemons()
-            and bool(busy_threads(self._thread_id))
-        )
+        """Is sim time held by work outside the loop (holds, executor jobs, awaited child
+        processes, bytes in flight, busy threads: evclock/_outside.py)?
+
+        Threads held only in timed waits of known length let sim time move up to the
+        first of their ends (the outside model's horizon), as timers and thread timeouts
+        race on stock asyncio.
+        """
+        holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
+        if holder is None:
+            return False
+        horizon = self._outside.horizon_ns
+        if horizon is None:
+            return True
+        target = self._core.next_deadline()
+        return target is None or target - self._core.now_ns > horizon
 
     def could_wake(self) -> bool:
-        """Could anything outside wake a task with nothing scheduled? (registered I/O)"""
-        return len(self._io_map) > 1
+        """Could anything outside wake a task with nothing scheduled? (I/O, signal
+        handlers, children, executor jobs, holds, threads: evclock/_outside.py)
+
+        Asked twice, a moment apart, before answering no: a thread seen parked may just
+        have been woken by one that has parked since (a hand-off chain).
+        """
+        outside = self._outside  # OUTSIDE HOOK
+        return outside.can_wake() or self._poll_io(_DEADLOCK_CONFIRM) or outside.can_wake()
 
     def interrupt_wait(self) -> None:
         """Nothing to do: the loop's waits are I/O waits, and whatever calls this runs in
@@ -380,13 +422,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` are on this sim time (only this loop's)."""
         return loop is self
-
-    def _only_daemons(self) -> bool:
-        """Whether every thread but the loop's is a daemon (ignored: background services)."""
-        me = self._thread_id
-        return not _thread_limbo and all(
-            t.daemon or t.ident == me for t in list(_thread_registry.values())
-        )
 
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
@@ -417,20 +452,23 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         held = self._held_for()
         limit = self._stall_timeout
         if limit is not None and held > limit:
-            threads = ", ".join(t.name for t in busy_threads(self._thread_id)) or "none"
             raise StallError(
                 f"sim time has been held for {held:.1f} s of wall time waiting for work "
-                f"outside the loop (executor jobs or holds: {self._holds}; busy threads: "
-                f"{threads}); make that work finish, mark background threads daemon, or "
-                "raise stall_timeout (None waits forever)"
+                "outside the loop, which holds it:\n"
+                + self._outside.describe()
+                + "\nmake that work finish (a thread that polls with a timeout holds sim time "
+                "while it runs: give it no timeout, or stop it), or raise stall_timeout "
+                "(None waits forever)"
             )
-        # Executor jobs call back through the self-pipe; bare threads need polling.
-        timeout = _THREAD_POLL if not self._holds else 0.05
+        # Exact holders call back through the self-pipe when they end; threads are polled.
+        timeout = 0.05 if self._holder == EXACT else _THREAD_POLL
         if limit is not None:
             timeout = min(timeout, max(limit - held, 0.0))
         self._poll_io(timeout)
 
     def _wait_for_io(self) -> None:
+        if self._ready:
+            return  # could_wake() polled, and something arrived
         held = self._held_for()
         limit = self._stall_timeout
         if limit is not None and held > limit:
@@ -440,33 +478,67 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 "forever. Waiting tasks:\n"
                 + "\n".join(f"  {line}" for line in self._describe_waiting_tasks())
             )
-        self._poll_io(None if limit is None else max(limit - held, 0.0) + 1e-3)
+        if self._poll_io(None if limit is None else max(limit - held, 0.0) + 1e-3):
+            self._held_since = None  # I/O came: the wait is over, the bound starts again
 
     def _describe_waiting_tasks(self) -> tuple[str, ...]:
         return describe_tasks(self)
 
     # --------------------------------------------------- work outside the loop
 
+    # OUTSIDE HOOKS: executor jobs, subprocesses and holds are counted in evclock/_outside.py.
+
     def run_in_executor(  # type: ignore[override]
         self, executor: concurrent.futures.Executor | None, func: Callable[..., _T], *args: Any
     ) -> asyncio.Future[_T]:
-        fut: asyncio.Future[_T] = super().run_in_executor(executor, func, *args)
-        self._add_hold()
-        fut.add_done_callback(self._release_hold_cb)
+        self._check_closed()
+        if self._debug:
+            self._check_callback(func, "run_in_executor")  # on func, not on our wrapper
+        token, job = self._outside.job(func, executor)
+        try:
+            fut: asyncio.Future[_T] = super().run_in_executor(executor, job, *args)
+        except BaseException:
+            self._outside.job_done(token)
+            raise
+        fut.add_done_callback(lambda _: self._outside.job_done(token))
         return fut
+
+    async def _make_subprocess_transport(self, *args: Any, **kwargs: Any) -> Any:
+        # asyncio internal (the one place every subprocess_exec/subprocess_shell and
+        # create_subprocess_* goes through): the child is counted once it is connected.
+        transport = await super()._make_subprocess_transport(*args, **kwargs)  # type: ignore[misc]
+        self._outside.add_child(transport)
+        return transport
+
+    def add_signal_handler(
+        self, sig: int, callback: Callable[[Unpack[_Ts]], object], *args: *_Ts
+    ) -> None:
+        super().add_signal_handler(sig, callback, *args)
+        self._quiet_fds = 0  # signals arrive through the self-pipe: poll it
+
+    def remove_signal_handler(self, sig: int) -> bool:
+        removed: bool = super().remove_signal_handler(sig)
+        self._quiet_fds = 0 if self._signal_handlers else 1  # type: ignore[attr-defined]
+        return removed
 
     async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
         # Hold sim time: 3.12+ wraps this in a 300 s timeout that must not fire in sim time.
         with self.hold_time():
             await super().shutdown_default_executor(*args, **kwargs)
 
+    @property
+    def _holds(self) -> int:
+        """How many exactly-counted things outside the loop are in flight (read by the
+        pytest plugin's guard)."""
+        return self._outside.active
+
     def _add_hold(self) -> None:
-        with self._holds_lock:
-            self._holds += 1
+        """One explicit hold (``hold_time``; the cross-process clock server holds too)."""
+        self._outside.add_hold()
 
     def _release_hold_cb(self, _fut: object) -> None:
-        with self._holds_lock:
-            self._holds -= 1
+        """Release one :meth:`_add_hold` (a done-callback signature)."""
+        self._outside.release_hold()
 
     @contextlib.contextmanager
     def hold_time(self) -> Iterator[None]:
@@ -493,6 +565,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _pacing_changed(self) -> None:
         self._update_fast_path()
+        # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) wakes
+        # the loop, which may be blocked in a pacing or pause wait (DESIGN 5).
+        if self._thread_id is not None and threading.get_ident() != self._thread_id:
+            self._write_to_self()
 
     def _stepping_until(self, when_ns: int) -> None:
         self._core.stop_at(when_ns)  # virtual time stops exactly there
@@ -516,3 +592,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             super().close()
         finally:
             self._source.close()
+
+
+# OUTSIDE HOOK: a thread blocked in this loop's selector is an event loop, not busy work.
+EVENT_LOOP_WAITS.add(SimEventLoop._poll_io.__code__)

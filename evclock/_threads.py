@@ -1,31 +1,73 @@
-"""Is any thread outside the loop still working on something that may call the loop back?
+"""What is each thread outside the loop doing right now? (DESIGN section 11)
 
-Sim time must not move while another thread is busy: a 50 ms job in a thread must finish
-before a 5 s sim-time timeout can expire. Executor jobs and explicit holds are counted
-exactly by the loop; this module covers the rest (plain ``threading.Thread`` producers,
-anyio worker threads) by looking at what each thread is doing right now:
+Sim time must not move while another thread is about to hand the loop something, and must
+move while every other thread only waits for the loop. This module classifies a thread into
+one of the :class:`ThreadState` values, from the most exact source available:
 
-* a thread *parked* on a ``threading.Condition`` (``Event.wait``, ``Queue.get``,
-  ``Semaphore.acquire`` ...) that nobody has notified can only be woken by another thread,
-  so it is idle; once notified (its waiter lock released) it counts as busy again;
-* an idle ``concurrent.futures`` worker (blocked on an empty work queue) is idle;
-* a thread blocked in ``Thread.join`` waits for another thread, which is judged on its own;
-* daemon threads are ignored here (background services by convention): they never hold
-  sim time, though they may still call the loop back (resume a paused loop);
-* anything else - computing, sleeping, blocked on a socket - is busy.
+* **Linux** (``/proc/self/task/<tid>/syscall``): the kernel says whether the thread runs or
+  sleeps in a system call, which one and (from its arguments) whether with a timeout. A
+  futex wait without timeout is what every ``Lock.acquire()``, ``Condition.wait()``,
+  ``Queue.get()``, ``SimpleQueue.get()``, ``Thread.join()`` and idle pool worker comes down
+  to, whatever Python wrappers (blockbuster, debuggers) sit around it: only another thread
+  of this process can end it. A thread woken by a ``notify()``, a released lock or arriving
+  bytes is runnable in the kernel at once, before it gets a CPU: no race with its wake-up.
+* **Elsewhere** (or when ``/proc`` cannot be read): the thread's Python frames, which
+  recognise ``Condition.wait`` (with or without timeout), idle ``concurrent.futures``
+  workers and ``Thread.join``; anything else counts as running.
 
-Inspection happens under the GIL on a snapshot of every thread's innermost frame, and the
-caller checks its ready queue *after* this returns: a thread that handed a result to the
-loop before parking has already appended it there, so no hand-off is missed.
+Either way, some waits are recognised from the innermost Python frames first: a simulation
+loop waiting in its selector (another ``evclock.run()`` in a thread) is a loop, not work;
+``Thread.join`` and ``concurrent.futures.Future.result`` wait for another party, which is
+judged on its own, so they are parked whatever their timeout.
 """
 
 from __future__ import annotations
 
+import concurrent.futures
 import concurrent.futures.thread as _cf_thread
+import enum
+import os
+import platform
 import sys
 import threading
+import time
+import traceback
 import weakref
+from asyncio import base_events
 from types import CodeType, FrameType
+
+from ._errors import InvalidArgumentError
+
+
+class ThreadState(enum.Enum):
+    """What a thread outside the loop is doing, as far as sim time is concerned."""
+
+    #: Executing (or runnable): it may hand the loop a result any moment. Holds sim time.
+    RUNNING = "running"
+    #: Sleeping with a wall-time timeout (``time.sleep``, ``Event.wait(0.05)``,
+    #: ``Queue.get(timeout=...)``, ``threading.Timer``, a stock asyncio loop waiting for its
+    #: next timer): it wakes by itself. Holds sim time.
+    TIMED = "waiting with a timeout"
+    #: Waiting without timeout for another thread of this process (a lock, a condition, a
+    #: queue, a join): it neither holds sim time nor can wake the loop by itself.
+    PARKED = "parked"
+    #: Blocked on file descriptors or a child process (``recv``, ``accept``, ``read``,
+    #: ``select``, ``waitpid``), with or without a timeout (on I/O a timeout is a safety
+    #: bound): waiting for the world outside, often the loop's own sockets. It does not hold
+    #: sim time, but it may wake the loop.
+    WAITING_IO = "waiting for I/O"
+    #: A simulation loop waiting in its selector: it follows its own time.
+    EVENT_LOOP = "an event loop waiting"
+
+
+#: States in which a thread keeps sim time from moving.
+HOLDING_STATES = frozenset({ThreadState.RUNNING, ThreadState.TIMED})
+#: States in which a thread may still wake the loop.
+WAKING_STATES = frozenset(
+    {ThreadState.RUNNING, ThreadState.TIMED, ThreadState.WAITING_IO, ThreadState.EVENT_LOOP}
+)
+
+# ---------------------------------------------------------------- frames (all platforms)
 
 _CONDITION_WAIT: CodeType = threading.Condition.wait.__code__
 _POOL_WORKER: CodeType = _cf_thread._worker.__code__
@@ -36,34 +78,227 @@ _JOIN_CODES: frozenset[CodeType] = frozenset(
         getattr(threading.Thread, "_wait_for_tstate_lock", threading.Thread.join).__code__,
     )
 )
+#: Code objects of event-loop iterations that block in a selector (evclock adds its own).
+#: Code objects where a simulation loop waits in its selector (the loop module adds its
+#: own): such a thread waits for its own time to come, it never holds another loop's. A
+#: stock asyncio loop in a thread (anyio's blocking portal) is judged by the kernel like
+#: any thread: waiting for its next timer holds, waiting for I/O only does not.
+EVENT_LOOP_WAITS: set[CodeType] = set()
+#: Waits for another thread or a loop, which is judged on its own: ``Thread.join`` and
+#: ``concurrent.futures.Future.result`` (what ``run_coroutine_threadsafe`` and anyio's
+#: ``from_thread`` block on). Their timeout is a safety bound, not work: parked either way.
+_WAITS_ON_OTHERS: frozenset[CodeType] = _JOIN_CODES | {
+    concurrent.futures.Future.result.__code__,
+    concurrent.futures.Future.exception.__code__,
+}
+#: A stock asyncio loop's iteration: in a thread that waits in its selector, the timeout
+#: is the loop's next timer, a real delay (anyio's blocking portal sleeping, say).
+_ASYNCIO_RUN_ONCE: CodeType = base_events.BaseEventLoop._run_once.__code__  # type: ignore[attr-defined]
+_ASYNCIO_LOOP = ThreadState.RUNNING  # marker returned by _waits_on_another_party
+#: How many frames outward from the innermost one are searched for a known wait: wrappers
+#: around lock acquisition (blockbuster, tracers) add a few.
+_FRAME_DEPTH = 6
 
 
-def _is_parked(frame: FrameType) -> bool:
+def _waits_on_another_party(frame: FrameType | None) -> ThreadState | None:
+    """What the innermost frames say: EVENT_LOOP (a simulation loop waiting), PARKED (a
+    wait that another party ends, whatever its timeout), RUNNING_LOOP (a stock asyncio
+    loop: the kernel decides, its timeout being its next timer), or None."""
+    for _ in range(_FRAME_DEPTH):
+        if frame is None:
+            return None
+        code = frame.f_code
+        if code in EVENT_LOOP_WAITS:
+            return ThreadState.EVENT_LOOP
+        if code in _WAITS_ON_OTHERS:
+            return ThreadState.PARKED
+        if code is _ASYNCIO_RUN_ONCE:
+            return _ASYNCIO_LOOP
+        frame = frame.f_back
+    return None
+
+
+def _state_from_frames(frame: FrameType) -> ThreadState:
+    # Condition.wait calls nothing but lock methods: whatever frames sit inside it are
+    # wrappers around acquiring (blockbuster, tracers), so it is searched a few frames out.
+    inner: FrameType | None = frame
+    for _ in range(_FRAME_DEPTH):
+        if inner is None:
+            break
+        if inner.f_code is _CONDITION_WAIT:
+            if inner.f_locals.get("timeout") is not None:
+                return ThreadState.TIMED
+            waiter = inner.f_locals.get("waiter")
+            # Not yet queued, or already notified (released): about to run.
+            parked = waiter is not None and waiter.locked()
+            return ThreadState.PARKED if parked else ThreadState.RUNNING
+        inner = inner.f_back
     code = frame.f_code
-    if code is _CONDITION_WAIT:
-        waiter = frame.f_locals.get("waiter")
-        # Not yet allocated/queued, or already notified (released): about to run.
-        return waiter is not None and waiter.locked()
-    if code is _POOL_WORKER:
+    if code is _POOL_WORKER:  # innermost: blocked on its work queue, not running a job
         work_queue = frame.f_locals.get("work_queue")
-        return work_queue is not None and work_queue.empty()
-    return code in _JOIN_CODES
+        idle = work_queue is not None and work_queue.empty()
+        return ThreadState.PARKED if idle else ThreadState.RUNNING
+    return ThreadState.RUNNING
 
 
-def busy_threads(loop_thread_id: int | None) -> list[threading.Thread]:
-    """Non-daemon threads other than the loop's that are doing something right now."""
-    if threading.active_count() <= 1:
-        return []
-    frames = sys._current_frames()
-    busy = []
-    for thread in threading.enumerate():
-        ident = thread.ident
-        if ident is None or ident == loop_thread_id or thread.daemon:
-            continue
-        frame = frames.get(ident)
-        if frame is None or not _is_parked(frame):
-            busy.append(thread)
-    return busy
+# ----------------------------------------------------------- the kernel's view (Linux)
+
+# System calls a blocked thread can sit in, by number, per architecture: (kind, timeout
+# argument, file-descriptor count argument). Kinds: "ms" an int of milliseconds (negative =
+# none), "ptr" a pointer (0 = none), FUTEX the futex rules, SLEEP a timed sleep, PAUSE no
+# timeout at all. The fd count is -1 when the call always watches descriptors (epoll), None
+# when it watches none. Any other system call (read, recv, accept, wait4, ...) is I/O.
+_Rule = tuple[str, int, int | None]
+FUTEX: _Rule = ("futex", 3, None)
+SLEEP: _Rule = ("sleep", 0, None)
+PAUSE: _Rule = ("pause", 0, None)
+_X86_64: dict[int, _Rule] = {
+    7: ("ms", 2, 1),  # poll
+    23: ("ptr", 4, 0),  # select
+    34: PAUSE,  # pause
+    35: SLEEP,  # nanosleep
+    128: ("ptr", 2, None),  # rt_sigtimedwait
+    202: FUTEX,
+    230: SLEEP,  # clock_nanosleep
+    232: ("ms", 3, -1),  # epoll_wait
+    270: ("ptr", 4, 0),  # pselect6
+    271: ("ptr", 2, 1),  # ppoll
+    281: ("ms", 3, -1),  # epoll_pwait
+    441: ("ptr", 3, -1),  # epoll_pwait2
+    449: ("ptr", 3, None),  # futex_waitv
+}
+_AARCH64: dict[int, _Rule] = {
+    22: ("ms", 3, -1),  # epoll_pwait
+    72: ("ptr", 4, 0),  # pselect6
+    73: ("ptr", 2, 1),  # ppoll
+    98: FUTEX,
+    101: SLEEP,  # nanosleep
+    115: SLEEP,  # clock_nanosleep
+    137: ("ptr", 2, None),  # rt_sigtimedwait
+    441: ("ptr", 3, -1),  # epoll_pwait2
+    449: ("ptr", 3, None),  # futex_waitv
+}
+_SYSCALLS: dict[int, _Rule] | None = {"x86_64": _X86_64, "aarch64": _AARCH64}.get(
+    platform.machine()
+)
+_FUTEX_CMD_MASK = 0x7F  # without FUTEX_PRIVATE_FLAG (128) and FUTEX_CLOCK_REALTIME (256)
+_FUTEX_WAITS = frozenset({0, 6, 9, 11, 13})  # WAIT, LOCK_PI, WAIT_BITSET, WAIT_REQUEUE_PI, LOCK_PI2
+
+
+def _state_from_syscall(text: str, event_loop: bool) -> ThreadState:
+    """Classify one ``/proc/.../syscall`` line: "running", or "nr arg0 .. arg5 sp pc".
+
+    A wait on file descriptors (select, poll, epoll, a socket with a timeout) is waiting for
+    I/O whatever its timeout - a safety bound or a periodic check, not work - except in a
+    thread running an asyncio loop (``event_loop``), whose timeout is its next timer.
+    """
+    fields = text.split()
+    if not fields or fields[0] == "running" or fields[0] == "-1":
+        return ThreadState.RUNNING  # "-1": blocked outside a system call (a page fault)
+    assert _SYSCALLS is not None
+    args = [int(value, 16) for value in fields[1:7]]
+    rule = _SYSCALLS.get(int(fields[0]))
+    if rule is None:
+        return ThreadState.WAITING_IO  # read, recv, accept, wait4, ...: no timeout of its own
+    if rule is PAUSE:
+        return ThreadState.PARKED  # pause(): only a signal ends it
+    if rule is SLEEP:
+        return ThreadState.TIMED
+    kind, timeout_arg, fds_arg = rule
+    if rule is FUTEX:
+        command = args[1] & _FUTEX_CMD_MASK
+        if command not in _FUTEX_WAITS:
+            return ThreadState.RUNNING  # a wake or requeue: over in an instant
+        return ThreadState.TIMED if args[timeout_arg] else ThreadState.PARKED
+    watches_fds = fds_arg is not None and (fds_arg < 0 or args[fds_arg] != 0)
+    if watches_fds and not event_loop:
+        return ThreadState.WAITING_IO
+    value = args[timeout_arg]
+    # "ms": a negative int means no timeout; "ptr": a null pointer does.
+    timed = value & 0x80000000 == 0 if kind == "ms" else value != 0
+    return ThreadState.TIMED if timed else ThreadState.WAITING_IO
+
+
+class _KernelView:
+    """Reads each thread's scheduler state and current system call from ``/proc``; two
+    open files per thread, re-read with ``pread``."""
+
+    def __init__(self) -> None:
+        self._files: dict[int, tuple[int, int]] = {}
+
+    def read(self, native_id: int) -> str | None:
+        """The thread's ``syscall`` line, or "running" when the scheduler has it runnable:
+        a thread woken (a futex released, bytes arrived) but not yet on a CPU still shows
+        the system call it is leaving."""
+        files = self._files.get(native_id)
+        try:
+            if files is None:
+                task = f"/proc/self/task/{native_id}"
+                files = (
+                    os.open(f"{task}/syscall", os.O_RDONLY),
+                    os.open(f"{task}/stat", os.O_RDONLY),
+                )
+                self._files[native_id] = files
+            syscall = os.pread(files[0], 256, 0).decode("ascii", "replace")
+            stat = os.pread(files[1], 1024, 0).decode("ascii", "replace")
+        except OSError:
+            return None
+        state = stat.rpartition(")")[2].split()[:1]
+        return "running" if state == ["R"] else syscall
+
+    def forget_except(self, alive: set[int]) -> None:
+        for native_id in [n for n in self._files if n not in alive]:
+            for fd in self._files.pop(native_id):
+                os.close(fd)
+
+
+def _kernel_view_works() -> bool:
+    if _SYSCALLS is None or not sys.platform.startswith("linux"):
+        return False
+    probe = _KernelView()
+    text = probe.read(threading.get_native_id())  # this thread: running
+    probe.forget_except(set())
+    return text == "running"
+
+
+_kernel: _KernelView | None = _KernelView() if _kernel_view_works() else None
+
+
+def check_thread_inference() -> None:
+    """Refuse to guess from frames on an interpreter running without the GIL.
+
+    Frame inspection reads other threads' frames, which is only consistent under the GIL;
+    the kernel view does not need it.
+    """
+    gil_enabled = getattr(sys, "_is_gil_enabled", lambda: True)()
+    if _kernel is None and not gil_enabled:
+        raise InvalidArgumentError(
+            "watch_threads=True needs to see what other threads do: on this platform that "
+            "means reading their Python frames, which needs the GIL, and this interpreter "
+            "runs without it; run with PYTHON_GIL=1, or pass watch_threads=False (then only "
+            "executor jobs, subprocesses and loop.hold_time() hold sim time)"
+        )
+
+
+def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadState:
+    """The state of ``thread``, whose innermost Python frame is ``frame`` (None: none yet)."""
+    from_frames = _waits_on_another_party(frame)
+    if from_frames is ThreadState.EVENT_LOOP:
+        return from_frames
+    native_id = thread.native_id
+    text = _kernel.read(native_id) if _kernel is not None and native_id is not None else None
+    if from_frames is ThreadState.PARKED:
+        # Waiting on another party - unless already woken (then it is about to deliver).
+        if text is not None:
+            return ThreadState.RUNNING if text == "running" else ThreadState.PARKED
+        assert frame is not None
+        woken = _state_from_frames(frame) is ThreadState.RUNNING
+        return ThreadState.RUNNING if woken else ThreadState.PARKED
+    if text is not None:
+        return _state_from_syscall(text, event_loop=from_frames is _ASYNCIO_LOOP)
+    if frame is None:
+        return ThreadState.RUNNING  # starting or finishing
+    return _state_from_frames(frame)
 
 
 #: evclock's own helper threads (the pytest plugin's watchdog): they never call the loop back.
@@ -75,10 +310,78 @@ def mark_internal(thread: threading.Thread) -> None:
     _internal.add(thread)
 
 
+def internal_count() -> int:
+    """How many of evclock's helper threads are alive (they do not count as outside work)."""
+    return sum(1 for thread in list(_internal) if thread.is_alive())
+
+
+def other_threads(loop_thread_id: int | None) -> list[threading.Thread]:
+    """Live threads other than the loop's and evclock's helpers, in start order."""
+    return [
+        t
+        for t in threading.enumerate()
+        if t.ident is not None and t.ident != loop_thread_id and t not in _internal
+    ]
+
+
+def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadState]]:
+    """Every other thread with its current state."""
+    threads = other_threads(loop_thread_id)
+    if not threads:
+        return []
+    frames = sys._current_frames()
+    result = [(t, thread_state(t, frames.get(t.ident or 0))) for t in threads]
+    if _kernel is not None:
+        _kernel.forget_except({t.native_id for t in threads if t.native_id is not None})
+    alive = {t.ident for t in threads}
+    for ident in [i for i in _timed_waits if i not in alive]:
+        del _timed_waits[ident]
+    return result
+
+
+#: Per thread: the Condition.wait it is in (its waiter lock) and when that wait times out.
+_timed_waits: dict[int, tuple[object, float]] = {}
+
+
+def wait_deadline(thread: threading.Thread) -> float | None:
+    """When ``thread``'s current timed wait ends by itself (``time.monotonic()`` seconds),
+    if it is a ``Condition.wait(timeout)`` (``Event.wait``, ``Queue.get``, ``Timer``);
+    None when unknown (``time.sleep``, a C library's wait).
+
+    The wait is timed from the first time it is seen, which is at or after its start: the
+    deadline may be late, never early (time is held a little longer, never too little).
+    """
+    ident = thread.ident or 0
+    frame: FrameType | None = sys._current_frames().get(ident)
+    for _ in range(_FRAME_DEPTH):
+        if frame is None:
+            break
+        if frame.f_code is _CONDITION_WAIT:
+            timeout = frame.f_locals.get("timeout")
+            waiter = frame.f_locals.get("waiter")
+            if not isinstance(timeout, int | float) or waiter is None:
+                return None
+            seen = _timed_waits.get(ident)
+            if seen is None or seen[0] is not waiter:
+                seen = _timed_waits[ident] = (waiter, time.monotonic() + max(timeout, 0))
+            return seen[1]
+        frame = frame.f_back
+    _timed_waits.pop(ident, None)
+    return None
+
+
+def describe_thread(thread: threading.Thread, state: ThreadState) -> str:
+    """A thread's name, state and innermost frames, for error messages."""
+    frame = sys._current_frames().get(thread.ident or 0)
+    kind = "daemon thread" if thread.daemon else "thread"
+    head = f"{kind} {thread.name!r} ({state.value})"
+    if frame is None:
+        return head
+    lines = "".join(traceback.format_stack(frame, limit=4)).splitlines()
+    return head + ":\n" + "\n".join("    " + line for line in lines)
+
+
 def could_call_back(loop_thread_id: int | None) -> bool:
     """Whether any other live thread (daemon or not, evclock's helpers aside) might still call
     the loop back, e.g. resume it while it is paused."""
-    return any(
-        t.ident != loop_thread_id and t not in _internal and t.is_alive()
-        for t in threading.enumerate()
-    )
+    return any(t.is_alive() for t in other_threads(loop_thread_id))

@@ -6,6 +6,10 @@ Run it with ``python examples/pacing.py``. A 10 Hz controller runs on virtual ti
 2. as fast as possible (``loop.rtf = None``) for a simulated minute;
 3. paused, while an operator thread - a stand-in for a GUI or a dashboard - steps the
    simulation three times (each step: one jump to the next deadline) and then resumes it.
+   The controls are called directly from that thread: they are thread-safe and wake the
+   loop. The operator waits for each step on a ``concurrent.futures.Future``: such a wait
+   never holds sim time, whatever its timeout (a bare ``Event.wait(timeout)`` would: it
+   may be a delay, see the README's "Work outside the loop").
 
 Sim times are exact and the same on every run; the wall-time figures depend on the machine.
 """
@@ -13,6 +17,7 @@ Sim times are exact and the same on every run; the wall-time figures depend on t
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import threading
 import time
 
@@ -23,11 +28,12 @@ async def main() -> None:
     loop = asyncio.get_running_loop()
     assert isinstance(loop, evclock.SimEventLoop)
     clock = evclock.clock()
-    ticked = threading.Event()
+    next_tick: list[concurrent.futures.Future[evclock.Time]] = []
 
     async def controller() -> None:
         async for _tick in clock.rate(10, name="controller"):
-            ticked.set()
+            while next_tick:
+                next_tick.pop().set_result(clock.now())
 
     task = asyncio.create_task(controller())
 
@@ -42,14 +48,15 @@ async def main() -> None:
 
     def operator() -> None:
         for _ in range(3):
-            ticked.clear()
-            loop.call_soon_threadsafe(loop.step)
-            ticked.wait(5)
-            loop.call_soon_threadsafe(lambda: print(f"  stepped: sim time {clock.now()}"))
-        loop.call_soon_threadsafe(loop.resume)
+            ticked: concurrent.futures.Future[evclock.Time] = concurrent.futures.Future()
+            next_tick.append(ticked)
+            loop.step()
+            print(f"  stepped: sim time {ticked.result(timeout=5)}")
+        loop.resume()
 
     loop.pause()
     print(f"paused at {clock.now()}; the operator steps three times, then resumes")
+    await asyncio.sleep(0)  # let the controller's tick due now run before the operator starts
     threading.Thread(target=operator, daemon=True).start()
     await clock.sleep(0.5)
     print(f"resumed; the controller's half second ended at {clock.now()}")

@@ -744,7 +744,8 @@ async def test_next_one_is_fine():
             ">       await event.wait()",
             "E       evclock.DeadlockError: deadlock: every task is waiting and nothing "
             "can wake one (no timer is scheduled, virtual time cannot advance on its own, no I/O "
-            "is registered and no other thread is working). Waiting tasks:",
+            "or signal handler is registered, no child process runs and no other thread is "
+            "working or waiting for I/O). Waiting tasks:",
             f"E         Task-* (the test): test_stuck() at *test_stuck.py:{test_line} -> "
             "Event.wait() at *locks.py:*, waiting on <Future pending*",
             f"E         helper: helper() at *test_stuck.py:{helper_line} -> Event.wait() at "

@@ -25,6 +25,7 @@ from collections.abc import Sequence
 from typing import Any, Final
 
 from .._errors import ClockLost, InvalidArgumentError, InvalidTypeError, Ros2MessageError
+from .._threads import mark_internal
 from .._time import SIM, Time
 from ..sources import Gate, TimeSource
 from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints, open_session, require
@@ -146,6 +147,9 @@ class Ros2ClockSource(TimeSource):
             self._reader = threading.Thread(
                 target=self._read, name=f"evclock ros2 {self._topic} reader", daemon=True
             )
+            # The source's own delivery (it wakes the loop through the source): neither work
+            # that holds sim time nor a thread that could resume a paused loop.
+            mark_internal(self._reader)
             self._reader.start()
             self._wait_for_first(startup)
         except BaseException:

@@ -1,0 +1,325 @@
+"""The world outside the loop: what holds sim time, and what can wake the loop (DESIGN 11).
+
+One :class:`OutsideWork` per :class:`~evclock.SimEventLoop` answers the two questions the
+loop asks whenever nothing is runnable at the current sim time:
+
+**Is sim time held?** (:meth:`OutsideWork.holder`) Counted exactly where evclock can:
+
+* explicit holds (``loop.hold_time()``), and an armed wall-clock ``SIGALRM`` timer
+  (``signal.setitimer``) whose signal the loop handles (``add_signal_handler``);
+* executor jobs (``run_in_executor``, ``asyncio.to_thread``) from submission until their
+  result is back on the loop, except while the job's thread is *parked* - blocked without
+  timeout on a lock, condition or queue, which only another thread can end (a job waiting
+  for ``run_coroutine_threadsafe(...).result()`` waits for the loop: time must move);
+* child processes the loop started, while they run and a task waits on them: on their exit
+  (``Process.wait()``, ``communicate()``) or on their output (a read on their stdout or
+  stderr). A child started with a protocol of your own holds while it runs (evclock cannot
+  see what is awaited). A child nobody waits on does not hold: a long-running helper
+  process lets the simulation run; its output and its exit still wake the loop.
+
+Inferred: socket bytes the loop wrote that the kernel is still delivering (Linux; they
+hold while their count moves, up to ``IN_FLIGHT_PATIENCE`` when it does not). And every
+other thread, daemon or not (unless ``watch_threads=False``), from what
+the kernel says it is doing (see :mod:`evclock._threads`): running or sleeping with a
+timeout holds; parked, blocked on I/O without timeout, or an event loop waiting does not.
+
+**Could anything wake the loop?** (:meth:`OutsideWork.can_wake`) Registered I/O, signal
+handlers, children still running, executor jobs and holds in flight, and threads that run,
+sleep with a timeout, wait on I/O or are event loops. Otherwise waiting is a deadlock.
+
+Every hold is bounded by ``stall_timeout``: the :class:`~evclock.StallError` names what
+holds - each thread with its state and innermost frames.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import itertools
+import selectors
+import signal
+import sys
+import threading
+import time
+from asyncio import subprocess as aio_subprocess
+from collections.abc import Callable, Iterable, Mapping
+from typing import Any, TypeVar
+
+from ._threads import (
+    HOLDING_STATES,
+    WAKING_STATES,
+    ThreadState,
+    describe_thread,
+    survey,
+    thread_state,
+    wait_deadline,
+)
+
+_T = TypeVar("_T")
+
+#: How the loop should wait while time is held: exact holders call it back through its
+#: self-pipe when they end; inferred ones (plain threads) must be polled.
+EXACT, INFERRED = "exact", "inferred"
+
+_QUEUED, _RESULT_IN_FLIGHT = -1, -2
+#: Wall seconds unsent TCP bytes may stay unchanged and still count as in flight.
+IN_FLIGHT_PATIENCE = 0.2
+
+try:  # Linux: the unsent/unacknowledged bytes of a TCP socket
+    import fcntl
+    import struct
+    import termios
+
+    _TIOCOUTQ: int | None = termios.TIOCOUTQ if sys.platform.startswith("linux") else None
+except ImportError:  # pragma: no cover - Windows
+    _TIOCOUTQ = None
+
+
+class OutsideWork:
+    """Everything outside one loop that may hold its sim time or wake it."""
+
+    def __init__(
+        self,
+        loop_thread_id: Callable[[], int | None],
+        io_registered: Callable[[], bool],
+        signal_handlers: Callable[[], Mapping[int, object]],
+        registered: Callable[[], Iterable[selectors.SelectorKey]],
+        wake_loop: Callable[[], None],
+        *,
+        watch_threads: bool,
+    ) -> None:
+        self._loop_thread_id = loop_thread_id
+        self._io_registered = io_registered
+        self._signal_handlers = signal_handlers
+        self._registered = registered
+        self._in_flight: dict[int, int] = {}  # fd -> bytes the kernel has not delivered
+        self._in_flight_since = 0.0
+        self.horizon_ns: int | None = None
+        self._wake_loop = wake_loop
+        self.watch_threads = watch_threads
+        self._lock = threading.Lock()
+        self._holds = 0
+        # Executor jobs in flight: token -> (what, thread ident | _QUEUED | _RESULT_IN_FLIGHT).
+        self._jobs: dict[int, tuple[str, int]] = {}
+        self._tokens = itertools.count()
+        self._children: list[asyncio.SubprocessTransport] = []
+        #: How many exactly-counted things are in flight (holds, jobs, children): a plain
+        #: attribute, read on the loop's hot path.
+        self.active = 0
+
+    # ----------------------------------------------------------- bookkeeping
+
+    def add_hold(self) -> None:
+        with self._lock:
+            self._holds += 1
+            self.active += 1
+
+    def release_hold(self) -> None:
+        with self._lock:
+            self._holds -= 1
+            self.active -= 1
+        if threading.get_ident() != self._loop_thread_id():
+            self._wake_loop()  # released from another thread: re-decide now, not at next poll
+
+    def job(self, func: Callable[..., _T], executor: object) -> tuple[int, Callable[..., _T]]:
+        """Register an executor job; return its token and the callable to submit instead.
+
+        Thread-pool jobs are wrapped to record which thread runs them (the callable keeps
+        its result and exceptions); a job for another executor (a process pool: the
+        callable must stay picklable) is submitted unchanged and holds until it is done.
+        """
+        token = next(self._tokens)
+        what = getattr(func, "__qualname__", None) or repr(func)
+        with self._lock:
+            self._jobs[token] = (what, _QUEUED)
+            self.active += 1
+        if executor is not None and not isinstance(executor, concurrent.futures.ThreadPoolExecutor):
+            return token, func
+
+        def run_job(*args: Any) -> _T:
+            with self._lock:
+                self._jobs[token] = (what, threading.get_ident())
+            try:
+                return func(*args)
+            finally:
+                with self._lock:
+                    if token in self._jobs:
+                        self._jobs[token] = (what, _RESULT_IN_FLIGHT)
+
+        return token, run_job
+
+    def job_done(self, token: int) -> None:
+        """The job's result reached the loop (its asyncio future is done)."""
+        with self._lock:
+            if self._jobs.pop(token, None) is not None:
+                self.active -= 1
+
+    def add_child(self, transport: asyncio.SubprocessTransport) -> None:
+        """A child process the loop started (its transport, once connected)."""
+        with self._lock:
+            self._children.append(transport)
+            self.active += 1
+
+    # ------------------------------------------------------------- questions
+
+    def holder(self) -> str | None:
+        """Whether sim time is held now: EXACT, INFERRED, or None.
+
+        When held only by threads in timed waits of known length (``Event.wait(3)``),
+        :attr:`horizon_ns` says how far sim time may still move: as on stock asyncio, where
+        loop timers and thread timeouts race on one clock, what is due before the first of
+        those waits ends happens first. Otherwise it is None: sim time stands still.
+        """
+        self.horizon_ns = None
+        if self._holds or self._alarm_pending():
+            return EXACT
+        threads: list[tuple[threading.Thread, ThreadState]] | None = None
+        if self._jobs:
+            for _, where in list(self._jobs.values()):
+                if where < 0:
+                    return EXACT  # queued, or its result is on its way to the loop
+                if threads is None:
+                    threads = survey(self._loop_thread_id())
+                if self._job_thread_holds(where, threads):
+                    return EXACT
+        if self._children and self._children_hold():
+            return EXACT
+        if _TIOCOUTQ is not None and self._bytes_in_flight():
+            return INFERRED
+        if self.watch_threads:
+            if threads is None:
+                threads = survey(self._loop_thread_id())
+            jobs = self._job_threads()
+            horizon = None
+            for thread, state in threads:
+                if state not in HOLDING_STATES or thread.ident in jobs:
+                    continue
+                deadline = wait_deadline(thread) if state is ThreadState.TIMED else None
+                if deadline is None:
+                    return INFERRED  # running, or a timed wait of unknown length
+                remaining = max(deadline - time.monotonic(), 0.0)
+                horizon = remaining if horizon is None else min(horizon, remaining)
+            if horizon is not None:
+                self.horizon_ns = round(horizon * 1e9)
+                return INFERRED
+        return None
+
+    def can_wake(self) -> bool:
+        """Whether anything outside the loop could still make a task runnable."""
+        if self._io_registered() or bool(self._signal_handlers()) or self.active:
+            return True
+        if self.watch_threads:
+            return any(state in WAKING_STATES for _, state in survey(self._loop_thread_id()))
+        return False
+
+    def describe(self) -> str:
+        """What holds sim time right now, one item per line (for StallError)."""
+        lines = []
+        if self._holds:
+            lines.append(f"  {self._holds} explicit hold(s) (loop.hold_time())")
+        threads = survey(self._loop_thread_id())
+        by_ident = {t.ident: (t, s) for t, s in threads}
+        for what, where in list(self._jobs.values()):
+            if where == _QUEUED:
+                lines.append(f"  executor job {what}: queued, waiting for a worker thread")
+            elif where == _RESULT_IN_FLIGHT:
+                lines.append(f"  executor job {what}: finished, result on its way")
+            elif where in by_ident:
+                thread, state = by_ident[where]
+                if state is not ThreadState.PARKED:
+                    lines.append(f"  executor job {what} in {describe_thread(thread, state)}")
+        for child in list(self._children):
+            if self._child_holds(child):
+                lines.append(f"  child process {child.get_pid()}: a task waits on it")
+        if self.watch_threads:
+            jobs = self._job_threads()
+            for thread, state in threads:
+                if state in HOLDING_STATES and thread.ident not in jobs:
+                    lines.append("  " + describe_thread(thread, state))
+        return "\n".join(lines) or "  nothing any more (it just ended)"
+
+    # ------------------------------------------------------------- internals
+
+    def _bytes_in_flight(self) -> bool:
+        """Bytes the loop wrote to a TCP socket that the kernel has not delivered yet: on
+        loopback they arrive within milliseconds (an in-process TLS peer's close_notify),
+        so they hold sim time while that count moves. Bytes that stay put for
+        ``IN_FLIGHT_PATIENCE`` are not in flight: the peer is not reading (its window is
+        full), which is the peer's business, not the kernel's."""
+        assert _TIOCOUTQ is not None
+        pending = {}
+        for key in list(self._registered()):
+            # Transports register bare fds: ask every one; what is not a socket says so
+            # (ENOTTY). A Unix socket counts its peer's unread bytes: bounded the same way.
+            try:
+                unsent = struct.unpack("i", fcntl.ioctl(key.fd, _TIOCOUTQ, b"\0\0\0\0"))[0]
+            except OSError:
+                continue
+            if unsent:
+                pending[key.fd] = unsent
+        now = time.monotonic()
+        if pending != self._in_flight:
+            self._in_flight = pending
+            self._in_flight_since = now
+        return bool(pending) and now - self._in_flight_since < IN_FLIGHT_PATIENCE
+
+    def _alarm_pending(self) -> bool:
+        """A wall-clock SIGALRM is armed (``signal.setitimer``/``alarm``) and the loop
+        handles it: a wall-time event is on its way, like a thread's timed sleep."""
+        sigalrm = getattr(signal, "SIGALRM", None)
+        return (
+            sigalrm is not None
+            and sigalrm in self._signal_handlers()
+            and signal.getitimer(signal.ITIMER_REAL)[0] > 0
+        )
+
+    def _job_threads(self) -> set[int]:
+        return {where for _, where in list(self._jobs.values()) if where >= 0}
+
+    def _job_thread_holds(
+        self, ident: int, threads: list[tuple[threading.Thread, ThreadState]]
+    ) -> bool:
+        for thread, state in threads:
+            if thread.ident == ident:
+                return state is not ThreadState.PARKED
+        # Not surveyed (the loop's own thread, when it runs its own executor job inline):
+        # judge it directly.
+        current = threading._active.get(ident)  # type: ignore[attr-defined]
+        if current is None:
+            return True
+        return thread_state(current, None) is not ThreadState.PARKED
+
+    def _children_hold(self) -> bool:
+        holds = False
+        kept = []
+        for child in self._children:
+            if _child_exited(child):
+                continue
+            kept.append(child)
+            holds = holds or self._child_holds(child)
+        with self._lock:
+            self.active -= len(self._children) - len(kept)
+            self._children[:] = kept
+        return holds
+
+    @staticmethod
+    def _child_holds(child: asyncio.SubprocessTransport) -> bool:
+        if _child_exited(child):
+            return False
+        # asyncio internals (no public equivalent): the futures of Process.wait() callers.
+        if any(not w.done() for w in getattr(child, "_exit_waiters", None) or ()):
+            return True
+        protocol = child.get_protocol()
+        if not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
+            return True  # a protocol of the user's: what it awaits is invisible
+        for reader in (protocol.stdout, protocol.stderr):
+            # StreamReader._waiter: the future of a pending read (asyncio internal).
+            waiter = getattr(reader, "_waiter", None) if reader is not None else None
+            if waiter is not None and not waiter.done():
+                return True
+        return False
+
+
+def _child_exited(child: asyncio.SubprocessTransport) -> bool:
+    # BaseSubprocessTransport._returncode: set when the exit was reported to the loop.
+    return getattr(child, "_returncode", None) is not None

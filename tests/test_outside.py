@@ -1,0 +1,486 @@
+"""The world outside the loop: subprocesses, signals, threads and I/O (README "Work outside
+the loop"). Each case behaves as on stock asyncio - same results, no false timeout, no false
+deadlock, no hang - only on sim time. Every wait here is bounded."""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+
+import anyio
+import anyio.from_thread
+import anyio.to_process
+import pytest
+
+import evclock
+
+PY = sys.executable
+
+
+def sim_time() -> float:
+    return asyncio.get_running_loop().time()
+
+
+# ------------------------------------------------------------------ subprocesses
+
+
+def test_waiting_for_a_child_holds_sim_time() -> None:
+    async def main() -> tuple[int, float]:
+        proc = await asyncio.create_subprocess_exec("sleep", "0.3")
+        code = await proc.wait()
+        return code, sim_time()
+
+    assert evclock.run(main()) == (0, 0.0)
+
+
+def test_communicate_under_wait_for_does_not_time_out_in_sim_time() -> None:
+    async def main() -> tuple[bytes, float]:
+        proc = await asyncio.create_subprocess_exec(
+            PY, "-c", "import time; time.sleep(0.2); print('hi')", stdout=asyncio.subprocess.PIPE
+        )
+        out, _ = await asyncio.wait_for(proc.communicate(), 10)
+        return out, sim_time()
+
+    assert evclock.run(main()) == (b"hi\n", 0.0)
+
+
+def test_reading_a_childs_output_holds_sim_time_until_it_speaks() -> None:
+    async def main() -> tuple[bytes, float]:
+        proc = await asyncio.create_subprocess_exec(
+            PY, "-c", "import time; time.sleep(0.2); print('ready', flush=True); input()",
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        assert proc.stdout is not None
+        assert proc.stdin is not None
+        async with asyncio.timeout(5):
+            line = await proc.stdout.readline()
+        proc.stdin.close()
+        await proc.wait()
+        return line, sim_time()
+
+    assert evclock.run(main()) == (b"ready\n", 0.0)
+
+
+def test_a_child_nobody_waits_on_lets_sim_time_run() -> None:
+    async def main() -> tuple[float, int]:
+        proc = await asyncio.create_subprocess_exec("sleep", "30")
+        await asyncio.sleep(100)  # nobody awaits the child: the simulation goes on
+        at = sim_time()
+        proc.kill()
+        return at, await proc.wait()
+
+    started = time.monotonic()
+    assert evclock.run(main()) == (100.0, -signal.SIGKILL)
+    assert time.monotonic() - started < 20  # did not wait for the child's 30 s
+
+
+def test_anyio_run_process_and_to_process() -> None:
+    async def main() -> tuple[bytes, int, float]:
+        result = await anyio.run_process([PY, "-c", "print('out')"])
+        value = await anyio.to_process.run_sync(abs, -7)
+        return result.stdout, value, anyio.current_time()
+
+    assert evclock.run(main()) == (b"out\n", 7, 0.0)
+
+
+# ------------------------------------------------------------------------ signals
+
+
+def test_a_program_waiting_for_sigterm_gets_it() -> None:
+    async def main() -> tuple[str, float]:
+        loop = asyncio.get_running_loop()
+        got: asyncio.Future[str] = loop.create_future()
+        loop.add_signal_handler(signal.SIGTERM, got.set_result, "SIGTERM")
+        try:
+            threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGTERM)).start()
+            return await got, sim_time()
+        finally:
+            loop.remove_signal_handler(signal.SIGTERM)
+
+    assert evclock.run(main()) == ("SIGTERM", 0.0)
+
+
+def test_a_signal_from_a_child_process_wakes_the_loop() -> None:
+    async def main() -> str:
+        loop = asyncio.get_running_loop()
+        got: asyncio.Future[str] = loop.create_future()
+        loop.add_signal_handler(signal.SIGUSR1, got.set_result, "SIGUSR1")
+        try:
+            code = f"import os, time; time.sleep(0.1); os.kill({os.getpid()}, {signal.SIGUSR1:d})"
+            proc = await asyncio.create_subprocess_exec(PY, "-c", code)
+            value = await got
+            await proc.wait()
+            return value
+        finally:
+            loop.remove_signal_handler(signal.SIGUSR1)
+
+    assert evclock.run(main()) == "SIGUSR1"
+
+
+# ------------------------------------------------------------------------ threads
+
+
+@pytest.mark.parametrize("wait", ["timer", "event", "queue"])
+def test_a_thread_that_waits_with_a_timeout_holds_sim_time(wait: str) -> None:
+    async def main() -> tuple[str, float]:
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[str] = loop.create_future()
+
+        def deliver() -> None:
+            loop.call_soon_threadsafe(fut.set_result, wait)
+
+        def worker() -> None:
+            if wait == "event":
+                threading.Event().wait(0.05)
+            else:
+                with pytest.raises(queue.Empty):
+                    queue.Queue().get(timeout=0.05)
+            deliver()
+
+        if wait == "timer":
+            threading.Timer(0.05, deliver).start()
+        else:
+            threading.Thread(target=worker).start()
+        return await asyncio.wait_for(fut, 1), sim_time()
+
+    assert evclock.run(main()) == (wait, 0.0)
+
+
+def test_a_long_timed_wait_lets_earlier_sim_timers_fire_first() -> None:
+    """As on stock asyncio, where loop timers and thread timeouts race on one clock: a
+    thread's 3 s safety timeout does not keep a 0.1 s sleep from ending first."""
+
+    async def main() -> tuple[list[bool], float]:
+        event = threading.Event()
+        woke: list[bool] = []
+        thread = threading.Thread(target=lambda: woke.append(event.wait(3)))
+        thread.start()
+        await asyncio.sleep(0.1)  # ends before the thread's wait would time out
+        at = sim_time()
+        event.set()
+        await asyncio.to_thread(thread.join, 10)
+        return woke, at
+
+    assert evclock.run(main()) == ([True], 0.1)
+
+
+@pytest.mark.parametrize("blocker", ["lock", "simple_queue"])
+def test_a_thread_blocked_on_what_only_the_loop_releases_does_not_hold(blocker: str) -> None:
+    async def main() -> tuple[str, float]:
+        loop = asyncio.get_running_loop()
+        lock = threading.Lock()
+        lock.acquire()
+        handoff: queue.SimpleQueue[str] = queue.SimpleQueue()
+        fut: asyncio.Future[str] = loop.create_future()
+
+        def worker() -> None:
+            if blocker == "lock":
+                lock.acquire()
+                value = "unlocked"
+            else:
+                value = handoff.get()
+            loop.call_soon_threadsafe(fut.set_result, value)
+
+        thread = threading.Thread(target=worker)
+        thread.start()
+        await asyncio.sleep(1)  # the blocked thread holds no sim time
+        lock.release()
+        handoff.put("queued")
+        value = await asyncio.wait_for(fut, 5)
+        thread.join(5)
+        return value, sim_time()
+
+    expected = "unlocked" if blocker == "lock" else "queued"
+    assert evclock.run(main()) == (expected, 1.0)
+
+
+def test_an_executor_job_waiting_for_the_loop_does_not_hold() -> None:
+    async def main() -> tuple[float, float]:
+        loop = asyncio.get_running_loop()
+
+        def job() -> float:
+            inner = asyncio.run_coroutine_threadsafe(asyncio.sleep(2, result=loop.time()), loop)
+            return inner.result()  # no timeout: bounded by the loop's stall_timeout below
+
+        started_at = await loop.run_in_executor(None, job)
+        return started_at, sim_time()
+
+    assert evclock.run(main(), stall_timeout=10) == (0.0, 2.0)
+
+
+def test_two_sim_loops_in_two_threads_do_not_stall_each_other() -> None:
+    results: dict[str, float] = {}
+
+    def run(name: str) -> None:
+        async def main() -> float:
+            for _ in range(50):
+                await asyncio.sleep(0.1)
+            return sim_time()
+
+        results[name] = evclock.run(main(), stall_timeout=10)
+
+    threads = [threading.Thread(target=run, args=(name,)) for name in ("a", "b")]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(30)
+    assert results == {"a": pytest.approx(5.0), "b": pytest.approx(5.0)}
+
+
+def test_a_blocking_server_in_a_daemon_thread_is_a_peer() -> None:
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+
+    def serve() -> None:  # blocking sockets, a daemon thread: an in-process test server
+        conn, _ = listener.accept()
+        with conn:
+            data = conn.recv(100)
+            time.sleep(0.05)  # "thinks" in wall time before answering
+            conn.sendall(data.upper())
+
+    threading.Thread(target=serve, daemon=True).start()
+
+    async def main() -> tuple[bytes, float]:
+        await asyncio.sleep(3)  # the server, waiting in accept(), holds no sim time
+        reader, writer = await asyncio.open_connection("127.0.0.1", port)
+        writer.write(b"ping")
+        reply = await asyncio.wait_for(reader.read(100), 1)
+        writer.close()
+        await writer.wait_closed()
+        return reply, sim_time()
+
+    try:
+        assert evclock.run(main()) == (b"PING", 3.0)
+    finally:
+        listener.close()
+
+
+def test_anyio_blocking_portal_in_a_daemon_thread() -> None:
+    with anyio.from_thread.start_blocking_portal() as portal:
+
+        async def main() -> tuple[int, float]:
+            loop = asyncio.get_running_loop()
+            value = await loop.run_in_executor(None, portal.call, abs, -3)
+            fut: asyncio.Future[int] = loop.create_future()
+            portal.start_task_soon(_deliver, loop, fut)
+            return value + await asyncio.wait_for(fut, 1), sim_time()
+
+        assert evclock.run(main()) == (7, 0.0)
+
+
+async def _deliver(loop: asyncio.AbstractEventLoop, fut: asyncio.Future[int]) -> None:
+    await anyio.sleep(0.05)  # wall time, on the portal's own loop
+    loop.call_soon_threadsafe(fut.set_result, 4)
+
+
+# ------------------------------------------------------------- bounds and errors
+
+
+def test_stall_timeout_bounds_waiting_for_io_that_never_comes() -> None:
+    a, b = socket.socketpair()
+
+    async def main() -> None:
+        reader, writer = await asyncio.open_connection(sock=a)
+        try:
+            await reader.read(1)  # the peer never speaks
+        finally:
+            writer.close()  # run when the runner cancels this task after the StallError
+
+    started = time.monotonic()
+    try:
+        with pytest.raises(evclock.StallError, match=r"waited .* s of wall time for I/O"):
+            evclock.run(main(), stall_timeout=0.3)
+    finally:
+        b.close()
+    assert time.monotonic() - started < 20
+
+
+def test_a_thread_polling_forever_is_a_stall_naming_it_and_its_stack() -> None:
+    stop = threading.Event()
+
+    def poller() -> None:
+        while not stop.wait(0.01):
+            pass
+
+    thread = threading.Thread(target=poller, name="poller")
+    thread.start()
+
+    async def main() -> None:
+        await asyncio.sleep(1)
+
+    try:
+        with pytest.raises(evclock.StallError) as info:
+            evclock.run(main(), stall_timeout=0.3)
+    finally:
+        stop.set()
+        thread.join(5)
+    message = str(info.value)
+    assert "waiting for work outside the loop, which holds it:" in message
+    assert "thread 'poller' (" in message  # waiting with a timeout, or awake between two
+    assert "in poller" in message  # its stack
+
+
+def test_an_idle_worker_thread_does_not_hide_a_deadlock() -> None:
+    async def main() -> None:
+        await asyncio.to_thread(time.sleep, 0.01)  # leaves an idle pool worker alive
+        await asyncio.get_running_loop().create_future()  # nothing can ever resolve it
+
+    with pytest.raises(evclock.DeadlockError, match="nothing can wake one"):
+        evclock.run(main())
+
+
+def test_selector_as_first_positional_argument() -> None:
+    import selectors
+
+    selector = selectors.DefaultSelector()
+    loop = evclock.SimEventLoop(selector)
+    try:
+        assert loop._selector is selector
+
+        async def main() -> float:
+            await asyncio.sleep(2)
+            return sim_time()
+
+        assert loop.run_until_complete(main()) == 2.0
+    finally:
+        loop.close()
+
+
+# ------------------------------------------------------ controls from another thread
+
+
+class Done:
+    """Set by the loop when a test's scenario is over. Waiting on it is waiting on a
+    concurrent future, which never holds sim time whatever its timeout (an
+    ``Event.wait(10)`` would hold it for those 10 s: it may be a delay)."""
+
+    def __init__(self) -> None:
+        self._future: concurrent.futures.Future[None] = concurrent.futures.Future()
+
+    def set(self) -> None:
+        if not self._future.done():
+            self._future.set_result(None)
+
+    def wait(self, timeout: float) -> bool:
+        try:
+            self._future.result(timeout)
+        except concurrent.futures.TimeoutError:
+            return False
+        return True
+
+
+def _operate(loop: evclock.SimEventLoop, action: object, done: Done) -> None:
+    """Call a control directly from this (operator) thread once the loop waits; if the loop
+    has not finished 10 s later, unblock it through call_soon_threadsafe so that the test
+    fails on its assertion instead of hanging."""
+    time.sleep(0.05)
+    action()  # type: ignore[operator]
+    if not done.wait(10):
+        loop.call_soon_threadsafe(loop.stop)
+
+
+def test_step_and_resume_called_from_another_thread_wake_a_paused_loop() -> None:
+    async def main() -> list[float]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        done = Done()
+        seen = []
+        loop.pause()
+        threading.Thread(target=_operate, args=(loop, loop.step, done), daemon=True).start()
+        await asyncio.sleep(3)  # one step: a jump to this deadline
+        seen.append(loop.time())
+        threading.Thread(target=_operate, args=(loop, loop.resume, done), daemon=True).start()
+        await asyncio.sleep(4)
+        seen.append(loop.time())
+        done.set()
+        return seen
+
+    assert evclock.run(main()) == [3.0, 7.0]
+
+
+def test_step_until_called_from_another_thread() -> None:
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        done = Done()
+        loop.pause()
+        target = evclock.Time(2.5)
+
+        def step_until() -> None:
+            loop.step_until(target)
+
+        threading.Thread(target=_operate, args=(loop, step_until, done), daemon=True).start()
+        while loop.time() < 2.5:
+            await asyncio.sleep(0.5)
+        done.set()
+        return loop.time()
+
+    assert evclock.run(main()) == 2.5
+
+
+def test_rtf_set_from_another_thread_ends_a_long_pacing_wait() -> None:
+    async def main() -> float:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        done = Done()
+
+        def full_speed() -> None:
+            loop.rtf = None
+
+        threading.Thread(target=_operate, args=(loop, full_speed, done), daemon=True).start()
+        await asyncio.sleep(3600)  # at rtf=0.001 this would take 3.6 million wall seconds
+        done.set()
+        return loop.time()
+
+    started = time.monotonic()
+    assert evclock.run(main(), rtf=0.001) == 3600.0
+    assert time.monotonic() - started < 30
+
+
+def test_a_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
+    async def main() -> str:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        errors: list[BaseException] = []
+
+        def operator() -> None:
+            try:
+                loop.step()  # the loop is not paused
+            except evclock.PacingError as exc:
+                errors.append(exc)
+
+        thread = threading.Thread(target=operator)
+        thread.start()
+        await asyncio.to_thread(thread.join, 10)
+        return str(errors[0])
+
+    assert evclock.run(main()) == (
+        "step() needs a paused loop, but it is running as fast as possible; "
+        "call pause() first, then step"
+    )
+
+
+def test_outside_world_example_prints_exact_sim_times() -> None:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    proc = subprocess.run(
+        [PY, os.path.join(root, "examples", "outside_world.py")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.splitlines() == [
+        "child process said 'computed' at 0.000000000 s (sim)",
+        "thread handed over 'done' at 0.000000000 s (sim)",
+        "received SIGUSR1 at 0.000000000 s (sim)",
+        "server replied 'PING' at 5.000000000 s (sim)",
+    ]
