@@ -315,7 +315,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                     self._fast_path
                     and not io_registered
                     and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
-                    and len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
+                    and (
+                        len(_thread_registry) + len(_thread_limbo) <= 1
+                        or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
+                    )
                 ):
                     if self._held_since is not None:
                         self._held_since = None  # nothing holds time any more
