@@ -220,34 +220,68 @@ def _state_from_syscall(text: str, event_loop: bool) -> ThreadState:
 
 
 class _KernelView:
-    """Reads each thread's scheduler state and current system call from ``/proc``; two
-    open files per thread, re-read with ``pread``."""
+    """Reads each thread's scheduler state and current system call from ``/proc``; three
+    open files per thread, re-read with ``pread``.
+
+    ``schedstat`` counts the times a thread got a CPU: a thread whose count has not moved
+    since its system call was read, and that is not runnable now, is still in that system
+    call, so what was concluded from it still holds (:meth:`unchanged`). That is exact, and
+    it keeps a survey cheap when other threads just wait (one idle timer thread used to cost
+    every step of the loop two file reads, a frame walk and a frame's locals).
+    """
 
     def __init__(self) -> None:
-        self._files: dict[int, tuple[int, int]] = {}
+        self._files: dict[int, tuple[int, int, int]] = {}
+        self._runs: dict[int, bytes] = {}
+
+    def _open(self, native_id: int) -> tuple[int, int, int]:
+        files = self._files.get(native_id)
+        if files is None:
+            task = f"/proc/self/task/{native_id}"
+            files = (
+                os.open(f"{task}/syscall", os.O_RDONLY),
+                os.open(f"{task}/stat", os.O_RDONLY),
+                os.open(f"{task}/schedstat", os.O_RDONLY),
+            )
+            self._files[native_id] = files
+        return files
 
     def read(self, native_id: int) -> str | None:
         """The thread's ``syscall`` line, or "running" when the scheduler has it runnable:
         a thread woken (a futex released, bytes arrived) but not yet on a CPU still shows
         the system call it is leaving."""
-        files = self._files.get(native_id)
         try:
-            if files is None:
-                task = f"/proc/self/task/{native_id}"
-                files = (
-                    os.open(f"{task}/syscall", os.O_RDONLY),
-                    os.open(f"{task}/stat", os.O_RDONLY),
-                )
-                self._files[native_id] = files
+            files = self._open(native_id)
+            runs = os.pread(files[2], 128, 0)  # before the system call: see unchanged()
             syscall = os.pread(files[0], 256, 0).decode("ascii", "replace")
             stat = os.pread(files[1], 1024, 0).decode("ascii", "replace")
         except OSError:
+            self._runs.pop(native_id, None)
             return None
         state = stat.rpartition(")")[2].split()[:1]
-        return "running" if state == ["R"] else syscall
+        if state == ["R"]:
+            self._runs.pop(native_id, None)
+            return "running"
+        self._runs[native_id] = runs
+        return syscall
+
+    def unchanged(self, native_id: int) -> bool:
+        """Whether the thread has not run since its system call was last read (and is not
+        runnable now): then it is still blocked exactly as that reading said."""
+        runs = self._runs.get(native_id)
+        if runs is None:
+            return False
+        try:
+            files = self._files[native_id]
+            stat = os.pread(files[1], 1024, 0).decode("ascii", "replace")
+            now = os.pread(files[2], 128, 0)
+        except OSError:
+            return False
+        return now == runs and stat.rpartition(")")[2].split()[:1] != ["R"]
 
     def forget_except(self, alive: set[int]) -> None:
         for native_id in [n for n in self._files if n not in alive]:
+            self._runs.pop(native_id, None)
             for fd in self._files.pop(native_id):
                 os.close(fd)
 
@@ -324,18 +358,49 @@ def other_threads(loop_thread_id: int | None) -> list[threading.Thread]:
     ]
 
 
+#: Per thread (ident): the thread and its state at the last survey that read it.
+_surveyed: dict[int, tuple[threading.Thread, ThreadState]] = {}
+#: Threads found unchanged (not run since their last reading) by the latest survey.
+_unchanged: set[int] = set()
+
+
 def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadState]]:
-    """Every other thread with its current state."""
+    """Every other thread with its current state.
+
+    A thread that has not run since it was last read keeps its state (the kernel says so
+    exactly: :meth:`_KernelView.unchanged`); only the others are read again.
+    """
     threads = other_threads(loop_thread_id)
+    _unchanged.clear()
     if not threads:
         return []
-    frames = sys._current_frames()
-    result = [(t, thread_state(t, frames.get(t.ident or 0))) for t in threads]
-    if _kernel is not None:
-        _kernel.forget_except({t.native_id for t in threads if t.native_id is not None})
-    alive = {t.ident for t in threads}
-    for ident in [i for i in _timed_waits if i not in alive]:
-        del _timed_waits[ident]
+    result = []
+    frames: dict[int, FrameType] | None = None
+    for thread in threads:
+        ident = thread.ident or 0
+        known = _surveyed.get(ident)
+        if (
+            known is not None
+            and known[0] is thread
+            and _kernel is not None
+            and thread.native_id is not None
+            and _kernel.unchanged(thread.native_id)
+        ):
+            _unchanged.add(ident)
+            result.append(known)
+            continue
+        if frames is None:
+            frames = sys._current_frames()
+        known = _surveyed[ident] = (thread, thread_state(thread, frames.get(ident)))
+        result.append(known)
+    if len(_surveyed) > len(threads):  # some thread ended: forget it
+        alive = {t.ident for t in threads}
+        for ident in [i for i in _surveyed if i not in alive]:
+            del _surveyed[ident]
+        for ident in [i for i in _timed_waits if i not in alive]:
+            del _timed_waits[ident]
+        if _kernel is not None:
+            _kernel.forget_except({t.native_id for t in threads if t.native_id is not None})
     return result
 
 
@@ -352,6 +417,8 @@ def wait_deadline(thread: threading.Thread) -> float | None:
     deadline may be late, never early (time is held a little longer, never too little).
     """
     ident = thread.ident or 0
+    if ident in _unchanged and ident in _timed_waits:
+        return _timed_waits[ident][1]  # not run since: still in the same wait
     frame: FrameType | None = sys._current_frames().get(ident)
     for _ in range(_FRAME_DEPTH):
         if frame is None:

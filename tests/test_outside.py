@@ -484,3 +484,45 @@ def test_outside_world_example_prints_exact_sim_times() -> None:
         "received SIGUSR1 at 0.000000000 s (sim)",
         "server replied 'PING' at 5.000000000 s (sim)",
     ]
+
+
+@pytest.mark.skipif(not hasattr(os, "SCHED_IDLE"), reason="needs Linux scheduling classes")
+def test_a_parked_thread_the_loop_wakes_holds_time_after_many_unchanged_surveys() -> None:
+    # The thread stays parked for many steps (its state is reused, as it has not run since),
+    # then the loop itself wakes it. Pinned to the loop's CPU at idle priority, the woken
+    # thread cannot run before the loop looks again: runnable but not yet run, it must
+    # already hold sim time until it answers.
+    cpu = min(os.sched_getaffinity(0))
+    affinity = os.sched_getaffinity(0)
+
+    async def main() -> tuple[str, int]:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        wake: queue.Queue[int] = queue.Queue()
+        answer: asyncio.Future[str] = loop.create_future()
+
+        def worker() -> None:
+            os.sched_setaffinity(0, {cpu})
+            os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+            wake.get(timeout=60)
+            busy_until = time.monotonic() + 0.05
+            while time.monotonic() < busy_until:
+                pass
+            loop.call_soon_threadsafe(answer.set_result, "done")
+
+        thread = threading.Thread(target=worker, daemon=True)
+        thread.start()
+        for _ in range(200):
+            await clock.sleep(0.001)
+        wake.put(1)
+        result = await asyncio.wait_for(answer, 0.01)
+        thread.join(60)
+        return result, clock.now_ns()
+
+    os.sched_setaffinity(0, {cpu})
+    try:
+        result, now_ns = evclock.run(main())
+    finally:
+        os.sched_setaffinity(0, affinity)
+    assert result == "done"
+    assert now_ns == 200 * 1_000_000
