@@ -1,5 +1,5 @@
 """Shared set-up of the test suite: the repository root on sys.path (for ``examples``), and
-the PyBullet rule.
+the PyBullet rule, Ctrl-C for child processes.
 
 PyBullet publishes wheels for CPython 3.11 only, so the ``test`` extra installs it there and
 nowhere else. Tests that need it are skipped where it is missing - whole modules through
@@ -10,6 +10,7 @@ missing PyBullet on 3.11 is an error, so that the full suite can never skip them
 from __future__ import annotations
 
 import importlib.util
+import signal
 import sys
 from pathlib import Path
 
@@ -25,6 +26,11 @@ _SKIP_REASON = "PyBullet is not installed: pip install 'evclock[pybullet]'"
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        # A suite started as a background job of a non-interactive shell inherits SIGINT
+        # ignored, and so would every child it starts; the tests that press Ctrl-C on a child
+        # (a sweep, the dashboard) need it delivered, as from a terminal.
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     if _PYBULLET_WHEELS and not HAVE_PYBULLET:
         raise pytest.UsageError(
             "PyBullet is missing, and on this Python the full suite needs it: "

@@ -185,12 +185,6 @@ def _gone(pid: int) -> bool:
     return "State:\tZ" in status
 
 
-def _default_sigint() -> None:
-    # A suite started in the background by a non-interactive shell inherits SIGINT ignored,
-    # and so would the sweep: Ctrl-C, the subject here, must reach it.
-    signal.signal(signal.SIGINT, signal.SIG_DFL)
-
-
 @pytest.mark.pybullet
 def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
@@ -200,7 +194,6 @@ def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_pat
         [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "3,4,5,6",
          "--param", f"marker_dir={markers}", "--workers", "1", "--json", str(out), "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        preexec_fn=_default_sigint,
     )  # fmt: skip
     try:
         deadline = time.monotonic() + TIMEOUT
