@@ -568,10 +568,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _pacing_changed(self) -> None:
         self._update_fast_path()
-        # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) wakes
-        # the loop, which may be blocked in a pacing or pause wait (DESIGN 5).
-        if self._thread_id is not None and threading.get_ident() != self._thread_id:
-            self._write_to_self()
+
+    # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) changes the
+    # pacer there and hands the loop its reaction, which wakes a pacing or pause wait
+    # (DESIGN 5; the mechanism is PacingControls', shared with SimDriver). Until that
+    # callback ran, the loop does not advance: it runs what is ready first.
+
+    def _on_host_thread(self) -> bool:
+        return self._thread_id is None or threading.get_ident() == self._thread_id
+
+    def _call_on_host(self, what: str, reaction: Callable[[], None]) -> None:
+        self.call_soon_threadsafe(reaction)
 
     def _stepping_until(self, when_ns: int) -> None:
         self._core.stop_at(when_ns)  # virtual time stops exactly there

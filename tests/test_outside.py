@@ -468,6 +468,156 @@ def test_a_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
     )
 
 
+# ------------------------------------------- SimDriver's controls from another thread
+
+
+def _in_thread(action: object) -> concurrent.futures.Future[object]:
+    """Run ``action`` in a new (operator) thread after a moment; its result or error."""
+    result: concurrent.futures.Future[object] = concurrent.futures.Future()
+
+    def operator() -> None:
+        time.sleep(0.05)  # let the driver reach its wait first
+        try:
+            result.set_result(action())  # type: ignore[operator]
+        except BaseException as exc:
+            result.set_exception(exc)
+
+    threading.Thread(target=operator, daemon=True).start()
+    return result
+
+
+async def _outcome(result: concurrent.futures.Future[object]) -> object:
+    return await asyncio.wait_for(asyncio.wrap_future(result), 10)
+
+
+def test_driver_step_resume_and_rtf_from_another_thread_wake_it() -> None:
+    # A plain asyncio loop sleeps in epoll while the paused driver waits: only the control's
+    # hand-over (call_soon_threadsafe) can wake it. wait_for is wall time here (a bound).
+    async def main() -> list[object]:
+        seen: list[object] = []
+        async with evclock.SimDriver(rtf=None, paused=True) as sim:
+            op = _in_thread(sim.step)
+            await asyncio.wait_for(sim.clock.sleep(3), 10)  # one step: a jump to 3 s
+            seen += [sim.now_ns, await _outcome(op), sim.paused]
+            op = _in_thread(sim.resume)
+            await asyncio.wait_for(sim.clock.sleep(4), 10)
+            seen += [sim.now_ns, sim.paused]
+
+            def slow() -> None:
+                sim.rtf = 0.001  # from the operator thread: a very long pacing wait
+
+            await _outcome(_in_thread(slow))
+
+            def full_speed() -> None:
+                sim.rtf = None
+
+            op = _in_thread(full_speed)
+            await asyncio.wait_for(sim.clock.sleep(3600), 10)  # 3.6e6 wall s at rtf=0.001
+            seen += [sim.now_ns, sim.rtf]
+            await _outcome(op)
+        return seen
+
+    assert asyncio.run(main()) == [3 * 10**9, None, True, 7 * 10**9, False, 3607 * 10**9, None]
+
+
+def test_driver_pause_and_step_until_from_another_thread_stop_exactly() -> None:
+    async def main() -> list[object]:
+        seen: list[object] = []
+        async with evclock.SimDriver(rtf=None) as sim:
+            ticks: list[int] = []
+
+            async def controller() -> None:
+                async for tick in sim.clock.rate(10):
+                    ticks.append(tick.index)
+
+            task = asyncio.create_task(controller())
+            await asyncio.wait_for(sim.run_until(1.0), 10)
+            await _outcome(_in_thread(sim.pause))
+            paused_at = sim.now_ns
+            for _ in range(50):  # paused: time stands still
+                await asyncio.sleep(0.001)
+            seen += [sim.paused, sim.now_ns == paused_at]
+            target = evclock.Time(seconds=paused_at / 1e9 + 2.55)
+            await _outcome(_in_thread(lambda: sim.step_until(target)))
+            while sim.now_ns < target.nanoseconds:
+                await asyncio.wait_for(sim.clock.sleep(0.05), 10)
+            for _ in range(50):
+                await asyncio.sleep(0.001)
+            seen += [sim.now_ns - paused_at, sim.paused]
+            task.cancel()
+        return seen
+
+    assert asyncio.run(main()) == [True, True, 2_550_000_000, True]
+
+
+def test_driver_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
+    async def main() -> str:
+        async with evclock.SimDriver(rtf=None) as sim:
+            with pytest.raises(evclock.PacingError) as info:
+                await _outcome(_in_thread(sim.step))  # not paused
+            return str(info.value)
+
+    assert asyncio.run(main()) == (
+        "step() needs a paused loop, but it is running as fast as possible; "
+        "call pause() first, then step"
+    )
+
+
+def test_driver_hold_time_from_another_thread_holds_and_wakes_it() -> None:
+    async def main() -> list[object]:
+        async with evclock.SimDriver(rtf=None) as sim:
+            entered = threading.Event()
+            leave = threading.Event()
+
+            def worker() -> None:
+                with sim.hold_time():
+                    entered.set()
+                    leave.wait(10)
+
+            thread = threading.Thread(target=worker)
+            thread.start()
+            assert await asyncio.to_thread(entered.wait, 10)
+            before = sim.now_ns
+            sleeper = asyncio.ensure_future(sim.clock.sleep(5))
+            for _ in range(50):
+                await asyncio.sleep(0.001)
+            held = [sim.now_ns == before, sleeper.done()]
+            leave.set()
+            await asyncio.wait_for(sleeper, 10)
+            await asyncio.to_thread(thread.join, 10)
+            return [*held, sim.now_ns - before]
+
+    assert asyncio.run(main()) == [True, False, 5 * 10**9]
+
+
+def test_driver_waits_from_another_thread_raise_wrong_thread_error() -> None:
+    async def main() -> list[str]:
+        async with evclock.SimDriver(rtf=None) as sim:
+
+            def elsewhere() -> list[str]:
+                messages = []
+                for coro in (sim.run_until(1.0), sim.stop()):
+                    with pytest.raises(evclock.WrongThreadError) as info:
+                        asyncio.run(coro)
+                    messages.append(str(info.value))
+                return messages
+
+            messages = await asyncio.to_thread(elsewhere)
+        return messages
+
+    assert asyncio.run(main()) == [
+        "SimDriver.run_until(t) must be awaited on the event loop the driver runs on, but it "
+        "was called from another thread (or loop); hand it to the driver's loop with "
+        "asyncio.run_coroutine_threadsafe(sim.run_until(t), sim.loop).result(timeout), or "
+        "call the thread-safe controls (pause(), resume(), step(), step_until(), rtf) directly",
+        "SimDriver.stop() must be awaited on the event loop the driver runs on, but it was "
+        "called from another thread (or loop); hand it to the driver's loop with "
+        "asyncio.run_coroutine_threadsafe(sim.stop(), sim.loop).result(timeout), or call "
+        "the thread-safe controls (pause(), resume(), step(), step_until(), rtf) directly",
+    ]
+    assert issubclass(evclock.WrongThreadError, evclock.NotRunningError)
+
+
 def test_outside_world_example_prints_exact_sim_times() -> None:
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     proc = subprocess.run(
