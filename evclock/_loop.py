@@ -435,15 +435,30 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _wait_pacing(self, delay: float | None) -> None:
         """Wait as pacing asks, serving I/O: ``delay`` wall seconds, None until a control
-        changes (paused with no step left)."""
-        if delay is None and len(self._io_map) <= 1 and not could_call_back(self._thread_id):
+        changes (paused with no step left).
+
+        Paused, the loop waits for as long as anything could still resume it (a resume may
+        come from a task woken by any of them): registered I/O, a signal handler, a child
+        process, executor jobs or holds in flight, or any other live thread (an operator
+        thread idle in its own event wait counts). Unbounded, as a pause is: it ends with a
+        control. With none of these it is a deadlock.
+        """
+        if delay is None and not self._could_resume():
             raise DeadlockError(
-                "the loop is paused and nothing could ever resume it: no I/O is "
-                "registered and no other thread runs; call resume() or step() from a "
-                "task before pausing, or serve a control channel (socket) that can",
+                "the loop is paused and nothing could ever resume it: no I/O or signal "
+                "handler is registered, no child process runs and no other thread runs; "
+                "call resume() or step() from a task before pausing, or serve a control "
+                "channel (a socket, a signal handler) that can",
                 self._describe_waiting_tasks(),
             )
         self._poll_io(delay)
+
+    def _could_resume(self) -> bool:
+        # OUTSIDE HOOK: the outside model's wake sources (I/O, signal handlers, children,
+        # jobs, holds), and any other thread at all: an idle GUI thread may call resume().
+        if len(self._io_map) > 1 or could_call_back(self._thread_id):
+            return True
+        return self._outside.can_wake()
 
     def _held_for(self) -> float:
         now = time.monotonic()

@@ -354,6 +354,48 @@ def test_selector_as_first_positional_argument() -> None:
         loop.close()
 
 
+def test_a_paused_loop_whose_only_waker_is_a_signal_handler_waits_for_the_signal() -> None:
+    # No thread, no socket: only SIGUSR1 (sent by a process the loop does not know) can
+    # resume the loop, through its handler. Paused with that handler, the loop waits.
+    async def main() -> tuple[float, bool, list[str]]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        got: list[str] = []
+
+        def on_signal() -> None:
+            got.append("SIGUSR1")
+            loop.resume()
+
+        loop.add_signal_handler(signal.SIGUSR1, on_signal)
+        sender = subprocess.Popen(
+            [PY, "-c", f"import os, time; time.sleep(0.3); os.kill({os.getpid()}, {int(signal.SIGUSR1)})"]
+        )  # fmt: skip
+        try:
+            loop.pause()
+            await asyncio.sleep(2)
+        finally:
+            sender.wait(10)
+            loop.remove_signal_handler(signal.SIGUSR1)
+        return loop.time(), loop.paused, got
+
+    assert evclock.run(main()) == (2.0, False, ["SIGUSR1"])
+
+
+def test_a_paused_loop_nothing_can_resume_is_a_deadlock() -> None:
+    async def main() -> None:
+        asyncio.get_running_loop().pause()  # type: ignore[attr-defined]
+        await asyncio.sleep(1)
+
+    with pytest.raises(evclock.DeadlockError) as info:
+        evclock.run(main())
+    assert str(info.value).startswith(
+        "the loop is paused and nothing could ever resume it: no I/O or signal handler is "
+        "registered, no child process runs and no other thread runs; call resume() or step() "
+        "from a task before pausing, or serve a control channel (a socket, a signal handler) "
+        "that can"
+    )
+
+
 # ------------------------------------------------------ controls from another thread
 
 
