@@ -367,9 +367,8 @@ def test_a_paused_loop_whose_only_waker_is_a_signal_handler_waits_for_the_signal
             loop.resume()
 
         loop.add_signal_handler(signal.SIGUSR1, on_signal)
-        sender = subprocess.Popen(
-            [PY, "-c", f"import os, time; time.sleep(0.3); os.kill({os.getpid()}, {int(signal.SIGUSR1)})"]
-        )  # fmt: skip
+        kill = f"os.kill({os.getpid()}, {int(signal.SIGUSR1)})"
+        sender = subprocess.Popen([PY, "-c", f"import os, time; time.sleep(0.3); {kill}"])
         try:
             loop.pause()
             await asyncio.sleep(2)
