@@ -190,6 +190,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             lambda: self._io_map.values(),
             self._write_to_self,
             watch_threads=bool(watch_threads),
+            sim_now=lambda: self._core.now_ns,
         )
         #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None

@@ -87,6 +87,7 @@ class OutsideWork:
         wake_loop: Callable[[], None],
         *,
         watch_threads: bool,
+        sim_now: Callable[[], int] = lambda: 0,
     ) -> None:
         self._loop_thread_id = loop_thread_id
         self._io_registered = io_registered
@@ -96,6 +97,9 @@ class OutsideWork:
         self._in_flight_since = 0.0
         self.horizon_ns: int | None = None
         self._wake_loop = wake_loop
+        self._sim_now = sim_now
+        #: Timed waits seen: thread ident -> (wall deadline, sim time the wait ends at).
+        self._pins: dict[int, tuple[float, int]] = {}
         self.watch_threads = watch_threads
         self._lock = threading.Lock()
         self._holds = 0
@@ -165,10 +169,14 @@ class OutsideWork:
     def holder(self) -> str | None:
         """Whether sim time is held now: EXACT, INFERRED, or None.
 
-        When held only by threads in timed waits of known length (``Event.wait(3)``),
-        :attr:`horizon_ns` says how far sim time may still move: as on stock asyncio, where
-        loop timers and thread timeouts race on one clock, what is due before the first of
-        those waits ends happens first. Otherwise it is None: sim time stands still.
+        When held only by threads in timed waits of known length (``Event.wait(3)``,
+        ``time.sleep(1)``), :attr:`horizon_ns` says how far sim time may still move: as on
+        stock asyncio, where loop timers and thread timeouts race on one clock, what is due
+        before the first of those waits ends happens first. Each such wait is an event on
+        sim time, placed when it is first seen at sim ``now`` + its remaining wall length
+        (sim time has not moved since the thread entered it: a running thread holds it),
+        and kept there: sim time may advance up to it, then holds until the thread acts.
+        Otherwise it is None: sim time stands still.
         """
         self.horizon_ns = None
         if self._holds or self._alarm_pending():
@@ -190,17 +198,27 @@ class OutsideWork:
             if threads is None:
                 threads = survey(self._loop_thread_id())
             jobs = self._job_threads()
-            horizon = None
+            now_ns = self._sim_now()
+            hold_at = None
+            pins = {}
             for thread, state in threads:
                 if state not in HOLDING_STATES or thread.ident in jobs:
                     continue
                 deadline = wait_deadline(thread) if state is ThreadState.TIMED else None
                 if deadline is None:
+                    self._pins = {}
                     return INFERRED  # running, or a timed wait of unknown length
-                remaining = max(deadline - time.monotonic(), 0.0)
-                horizon = remaining if horizon is None else min(horizon, remaining)
-            if horizon is not None:
-                self.horizon_ns = round(horizon * 1e9)
+                ident = thread.ident or 0
+                pin = self._pins.get(ident)
+                if pin is None or pin[0] != deadline:
+                    # First seen: the wait ends at sim now + its remaining wall length.
+                    remaining = max(deadline - time.monotonic(), 0.0)
+                    pin = (deadline, now_ns + round(remaining * 1e9))
+                pins[ident] = pin
+                hold_at = pin[1] if hold_at is None else min(hold_at, pin[1])
+            self._pins = pins
+            if hold_at is not None:
+                self.horizon_ns = max(hold_at - now_ns, 0)
                 return INFERRED
         return None
 

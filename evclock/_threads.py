@@ -336,6 +336,8 @@ def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadSta
     alive = {t.ident for t in threads}
     for ident in [i for i in _timed_waits if i not in alive]:
         del _timed_waits[ident]
+    for ident in [i for i in _kernel_waits if i not in alive]:
+        del _kernel_waits[ident]
     return result
 
 
@@ -345,8 +347,10 @@ _timed_waits: dict[int, tuple[object, float]] = {}
 
 def wait_deadline(thread: threading.Thread) -> float | None:
     """When ``thread``'s current timed wait ends by itself (``time.monotonic()`` seconds),
-    if it is a ``Condition.wait(timeout)`` (``Event.wait``, ``Queue.get``, ``Timer``);
-    None when unknown (``time.sleep``, a C library's wait).
+    if it is a ``Condition.wait(timeout)`` (``Event.wait``, ``Queue.get``, ``Timer``), or,
+    on Linux, a timed system call whose deadline the kernel shows (``time.sleep``, a
+    ``Lock.acquire(timeout=...)``, a C library's timed futex wait or sleep); None when
+    unknown.
 
     The wait is timed from the first time it is seen, which is at or after its start: the
     deadline may be late, never early (time is held a little longer, never too little).
@@ -367,7 +371,103 @@ def wait_deadline(thread: threading.Thread) -> float | None:
             return seen[1]
         frame = frame.f_back
     _timed_waits.pop(ident, None)
-    return None
+    return _kernel_wait_deadline(thread)
+
+
+# ------------------------------------------- the length of a timed wait, from the kernel
+
+#: Per architecture: system call number -> (clock id argument or None for nanosleep's
+#: CLOCK_MONOTONIC-relative request, flags argument or None, timespec pointer argument).
+_SLEEPS: dict[int, tuple[int | None, int | None, int]] = (
+    {35: (None, None, 0), 230: (0, 1, 2)}  # nanosleep, clock_nanosleep
+    if _SYSCALLS is _X86_64
+    else {101: (None, None, 0), 115: (0, 1, 2)}
+)
+_FUTEX_NR = next((nr for nr, rule in (_SYSCALLS or {}).items() if rule is FUTEX), None)
+_TIMER_ABSTIME = 1
+_FUTEX_WAIT, _FUTEX_WAIT_BITSET, _FUTEX_CLOCK_REALTIME = 0, 9, 256
+_mem_fd: int | None = None
+#: Per thread: its timed system call (the syscall line and its timespec) and that call's
+#: deadline on the monotonic clock, computed when first seen.
+_kernel_waits: dict[int, tuple[str, float]] = {}
+
+
+def _read_timespec(address: int) -> float | None:
+    """The ``struct timespec`` at ``address`` in this process (read through
+    ``/proc/self/mem``, which answers EIO rather than crash when the memory is gone)."""
+    global _mem_fd
+    try:
+        if _mem_fd is None:
+            _mem_fd = os.open("/proc/self/mem", os.O_RDONLY)
+        raw = os.pread(_mem_fd, 16, address)
+    except (OSError, OverflowError):
+        return None
+    if len(raw) != 16:
+        return None
+    seconds = int.from_bytes(raw[:8], sys.byteorder, signed=True)
+    nanos = int.from_bytes(raw[8:], sys.byteorder, signed=True)
+    if seconds < 0 or not 0 <= nanos < 1_000_000_000:
+        return None  # not a timespec (the thread left the call meanwhile)
+    return seconds + nanos / 1e9
+
+
+def _kernel_wait_deadline(thread: threading.Thread) -> float | None:
+    """When ``thread``'s timed system call ends by itself, in ``time.monotonic()`` seconds:
+    ``time.sleep`` (``clock_nanosleep`` with an absolute deadline), ``nanosleep``, and
+    futex waits with a timeout (``Lock.acquire(timeout=...)``, a C library's timed wait).
+    Read from the call's arguments and the timespec they point to, then confirmed by
+    reading the call again (unchanged: the deadline belongs to it). None when unknown."""
+    native_id = thread.native_id
+    if _kernel is None or native_id is None:
+        return None
+    text = _kernel.read(native_id)
+    if text is None:
+        return None
+    fields = text.split()
+    if len(fields) < 7 or fields[0] in ("running", "-1"):
+        return None
+    number = int(fields[0])
+    args = [int(value, 16) for value in fields[1:7]]
+    clock = time.CLOCK_MONOTONIC
+    if number in _SLEEPS:
+        clock_arg, flags_arg, pointer_arg = _SLEEPS[number]
+        if clock_arg is not None:
+            clock = args[clock_arg]
+        absolute = flags_arg is not None and bool(args[flags_arg] & _TIMER_ABSTIME)
+        pointer = args[pointer_arg]
+    elif number == _FUTEX_NR:
+        command = args[1] & _FUTEX_CMD_MASK
+        if command not in (_FUTEX_WAIT, _FUTEX_WAIT_BITSET) or not args[3]:
+            return None
+        absolute = command == _FUTEX_WAIT_BITSET  # WAIT's timeout is a length
+        if absolute and args[1] & _FUTEX_CLOCK_REALTIME:
+            clock = time.CLOCK_REALTIME
+        pointer = args[3]
+    else:
+        return None
+    value = _read_timespec(pointer)
+    if value is None or _kernel.read(native_id) != text:
+        return None
+    try:
+        now = time.clock_gettime(clock)
+    except OSError:
+        return None
+    mono = time.monotonic()
+    ident = thread.ident or 0
+    key = f"{text} {value!r}"
+    seen = _kernel_waits.get(ident)
+    if absolute:
+        # Converted to the monotonic clock once per wait, so that it stays one value.
+        if seen is None or seen[0] != key:
+            seen = (key, mono + (value - now))
+            _kernel_waits[ident] = seen
+        return seen[1]
+    # A length: timed from when the call is first seen (at or after its start), and again
+    # from now once that end has passed (the same call site sleeping anew).
+    if seen is None or seen[0] != key or seen[1] < mono:
+        seen = (key, mono + value)
+        _kernel_waits[ident] = seen
+    return seen[1]
 
 
 def describe_thread(thread: threading.Thread, state: ThreadState) -> str:

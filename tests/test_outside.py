@@ -172,6 +172,78 @@ def test_a_long_timed_wait_lets_earlier_sim_timers_fire_first() -> None:
     assert evclock.run(main()) == ([True], 0.1)
 
 
+@pytest.mark.parametrize("wait", ["event", "time_sleep", "lock_timeout"])
+def test_a_timed_wait_is_an_event_in_sim_time_that_earlier_timers_cannot_pass(wait: str) -> None:
+    """A thread's timed wait of remaining wall length L, first seen at sim time t, ends at
+    sim t + L: a series of earlier sim timers runs up to it, never past it (sim time then
+    holds until the thread acts). Event.wait is timed from its frame; time.sleep and
+    Lock.acquire(timeout=...) from the deadline the kernel shows (Linux)."""
+
+    async def main() -> tuple[float, int]:
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[float] = loop.create_future()
+        ticks = 0
+
+        def worker() -> None:
+            if wait == "event":
+                threading.Event().wait(1)
+            elif wait == "time_sleep":
+                time.sleep(1)
+            else:
+                lock = threading.Lock()
+                lock.acquire()
+                lock.acquire(timeout=1)
+            loop.call_soon_threadsafe(lambda: fut.set_result(loop.time()))
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.1)
+                ticks += 1
+
+        thread = threading.Thread(target=worker)
+        thread.start()
+        task = asyncio.create_task(ticker())
+        delivered_at = await asyncio.wait_for(fut, 30)
+        task.cancel()
+        await asyncio.to_thread(thread.join, 10)
+        return delivered_at, ticks
+
+    delivered_at, ticks = evclock.run(main())
+    if wait == "event":  # timed from when it is first seen: exactly 1 s of sim time
+        assert (delivered_at, ticks) == (0.9, 9)
+    else:  # from the kernel's deadline: what was left of 1 s when first seen
+        assert 0.5 <= delivered_at <= 0.9
+        assert ticks == round(delivered_at * 10)
+
+
+def test_a_peer_thread_in_time_sleep_lets_a_short_sim_timeout_fire_first() -> None:
+    """anyio's test_receive_timeout: the peer sleeps 1 s before closing; a 0.1 s timeout on
+    the read fires first, as on stock asyncio; the close then arrives while time holds."""
+
+    async def main() -> tuple[float, bytes, float]:
+        server = socket.create_server(("127.0.0.1", 0))
+
+        def serve() -> None:
+            conn, _ = server.accept()
+            time.sleep(1)
+            conn.close()
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        reader, writer = await asyncio.open_connection(*server.getsockname()[:2])
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(reader.read(1), 0.1)
+        timed_out_at = sim_time()
+        rest = await asyncio.wait_for(reader.read(1), 5)  # EOF once the thread closes
+        writer.close()
+        await asyncio.to_thread(thread.join, 10)
+        server.close()
+        return timed_out_at, rest, sim_time()
+
+    assert evclock.run(main()) == (0.1, b"", 0.1)
+
+
 @pytest.mark.parametrize("blocker", ["lock", "simple_queue"])
 def test_a_thread_blocked_on_what_only_the_loop_releases_does_not_hold(blocker: str) -> None:
     async def main() -> tuple[str, float]:
