@@ -12,9 +12,11 @@ loop asks whenever nothing is runnable at the current sim time:
   timeout on a lock, condition or queue, which only another thread can end (a job waiting
   for ``run_coroutine_threadsafe(...).result()`` waits for the loop: time must move);
 * child processes the loop started, while they run and a task waits on them: on their exit
-  (``Process.wait()``, ``communicate()``) or on their output (a read on their stdout or
-  stderr). A child started with a protocol of your own holds while it runs (evclock cannot
-  see what is awaited). A child nobody waits on does not hold: a long-running helper
+  (``Process.wait()``, ``communicate()``, anyio's ``Process.wait()``) or on their output (a
+  read on their stdout or stderr); after the exit, a read (or asyncio's ``wait()``, which
+  also waits for the pipes) while a grandchild keeps their pipes open. A child started
+  with a protocol of your own holds while it runs (evclock cannot see what is awaited).
+  A child nobody waits on does not hold: a long-running helper
   process lets the simulation run; its output and its exit still wake the loop.
 
 Inferred: socket bytes the loop wrote that the kernel is still delivering (Linux; they
@@ -311,7 +313,7 @@ class OutsideWork:
         holds = False
         kept = []
         for child in self._children:
-            if _child_exited(child):
+            if _child_finished(child):
                 continue
             kept.append(child)
             holds = holds or self._child_holds(child)
@@ -322,14 +324,31 @@ class OutsideWork:
 
     @staticmethod
     def _child_holds(child: asyncio.SubprocessTransport) -> bool:
-        if _child_exited(child):
+        """A task waits on the child: on its exit while it runs, or on its output while
+        that is open - also after the child exited, when a grandchild that inherited the
+        pipe still holds it (it will write or close)."""
+        if _child_finished(child):
             return False
         # asyncio internals (no public equivalent): the futures of Process.wait() callers.
+        # asyncio resolves them once the child exited *and* its pipes closed: they hold
+        # after the exit too while a grandchild keeps a pipe open.
         if any(not w.done() for w in getattr(child, "_exit_waiters", None) or ()):
             return True
+        exited = _child_exited(child)
         protocol = child.get_protocol()
-        if not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
-            return True  # a protocol of the user's: what it awaits is invisible
+        if not exited:
+            if not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
+                return True  # a protocol of the user's: what it awaits is invisible
+            # anyio's subclass (_ProcessStreamProtocol) signals the exit with an
+            # asyncio.Event ``exited`` that its Process.wait() awaits: Event._waiters
+            # holds the futures of the tasks waiting on it (asyncio internal).
+            exit_event = getattr(protocol, "exited", None)
+            if isinstance(exit_event, asyncio.Event) and any(
+                not w.done() for w in getattr(exit_event, "_waiters", None) or ()
+            ):
+                return True
+        elif not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
+            return False
         for reader in (protocol.stdout, protocol.stderr):
             # StreamReader._waiter: the future of a pending read (asyncio internal).
             waiter = getattr(reader, "_waiter", None) if reader is not None else None
@@ -341,3 +360,11 @@ class OutsideWork:
 def _child_exited(child: asyncio.SubprocessTransport) -> bool:
     # BaseSubprocessTransport._returncode: set when the exit was reported to the loop.
     return getattr(child, "_returncode", None) is not None
+
+
+def _child_finished(child: asyncio.SubprocessTransport) -> bool:
+    # BaseSubprocessTransport._finished: exited and every pipe closed (asyncio internal);
+    # a closed transport (killed or given up) counts as finished too.
+    if getattr(child, "_finished", False):
+        return True
+    return child.is_closing() and _child_exited(child)

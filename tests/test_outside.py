@@ -91,6 +91,65 @@ def test_anyio_run_process_and_to_process() -> None:
     assert evclock.run(main()) == (b"out\n", 7, 0.0)
 
 
+def test_anyio_close_of_a_child_blocked_on_a_full_stdout_pipe() -> None:
+    """anyio's Process.aclose() closes the pipes (the child gets EPIPE) and waits on its
+    protocol's ``exited`` event: that wait holds sim time while the child runs."""
+
+    async def main() -> tuple[int | None, float]:
+        process = await anyio.open_process([PY, "-c", "import sys; sys.stdout.write('x' * 2**20)"])
+        with anyio.fail_after(5):
+            await process.aclose()
+        return process.returncode, sim_time()
+
+    code, at = evclock.run(main())
+    assert code not in (0, None)  # it died of the closed pipe
+    assert at == 0.0
+
+
+GRANDCHILD = (
+    "import subprocess, sys; subprocess.Popen([sys.executable, '-c', "
+    "'import select, sys; select.select([sys.stdin], [], [], 10)'])"
+)
+
+
+def test_output_held_open_by_a_grandchild_holds_sim_time_after_the_child_exited() -> None:
+    """The child exits at once; its child (inheriting stdin and stdout) lives until stdin
+    closes. asyncio's wait() returns once the child exited and its pipes closed: it holds
+    sim time until then, also after the child's exit, so no 5 s timeout fires."""
+
+    async def main() -> tuple[int, bytes, float]:
+        proc = await asyncio.create_subprocess_exec(
+            PY, "-c", GRANDCHILD,
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        assert proc.stdin is not None
+        assert proc.stdout is not None
+        await asyncio.sleep(0)
+        proc.stdin.close()  # the grandchild sees EOF, exits, and so closes stdout
+        code = await asyncio.wait_for(proc.wait(), 5)
+        rest = await asyncio.wait_for(proc.stdout.read(), 3)
+        return code, rest, sim_time()
+
+    assert evclock.run(main()) == (0, b"", 0.0)
+
+
+def test_anyio_wait_returns_on_exit_while_a_grandchild_keeps_stdout_open() -> None:
+    async def main() -> tuple[int, float]:
+        process = await anyio.open_process([PY, "-c", GRANDCHILD])
+        assert process.stdin is not None
+        assert process.stdout is not None
+        async with process.stdin:
+            with anyio.fail_after(5):
+                code = await process.wait()
+        with anyio.fail_after(3, shield=True):
+            async for _ in process.stdout:
+                pass
+        await process.aclose()
+        return code, sim_time()
+
+    assert evclock.run(main()) == (0, 0.0)
+
+
 # ------------------------------------------------------------------------ signals
 
 
