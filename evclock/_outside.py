@@ -51,7 +51,9 @@ from ._threads import (
     HOLDING_STATES,
     WAKING_STATES,
     ThreadState,
+    child_wait_deadline,
     describe_thread,
+    forget_child,
     survey,
     thread_state,
     wait_deadline,
@@ -100,8 +102,9 @@ class OutsideWork:
         self.horizon_ns: int | None = None
         self._wake_loop = wake_loop
         self._sim_now = sim_now
-        #: Timed waits seen: thread ident -> (wall deadline, sim time the wait ends at).
-        self._pins: dict[int, tuple[float, int]] = {}
+        #: Timed waits seen (of threads and children): which wait -> (its monotonic
+        #: deadline, the sim time it ends at).
+        self._pins: dict[object, tuple[float, int]] = {}
         self.watch_threads = watch_threads
         self._lock = threading.Lock()
         self._holds = 0
@@ -192,17 +195,16 @@ class OutsideWork:
                     threads = survey(self._loop_thread_id())
                 if self._job_thread_holds(where, threads):
                     return EXACT
-        if self._children and self._children_hold():
+        timed: list[tuple[object, float]] = []  # (which wait, its monotonic deadline)
+        if self._children and self._children_hold(timed):
             return EXACT
         if _TIOCOUTQ is not None and self._bytes_in_flight():
             return INFERRED
+        holder = EXACT  # children's timed waits end in output or an exit: both wake us
         if self.watch_threads:
             if threads is None:
                 threads = survey(self._loop_thread_id())
             jobs = self._job_threads()
-            now_ns = self._sim_now()
-            hold_at = None
-            pins = {}
             for thread, state in threads:
                 if state not in HOLDING_STATES or thread.ident in jobs:
                     continue
@@ -210,19 +212,23 @@ class OutsideWork:
                 if deadline is None:
                     self._pins = {}
                     return INFERRED  # running, or a timed wait of unknown length
-                ident = thread.ident or 0
-                pin = self._pins.get(ident)
-                if pin is None or pin[0] != deadline:
-                    # First seen: the wait ends at sim now + its remaining wall length.
-                    remaining = max(deadline - time.monotonic(), 0.0)
-                    pin = (deadline, now_ns + round(remaining * 1e9))
-                pins[ident] = pin
-                hold_at = pin[1] if hold_at is None else min(hold_at, pin[1])
-            self._pins = pins
-            if hold_at is not None:
-                self.horizon_ns = max(hold_at - now_ns, 0)
-                return INFERRED
-        return None
+                timed.append((thread.ident or 0, deadline))
+                holder = INFERRED
+        if not timed:
+            self._pins = {}
+            return None
+        now_ns = self._sim_now()
+        mono = time.monotonic()
+        pins = {}
+        for key, deadline in timed:
+            pin = self._pins.get(key)
+            if pin is None or pin[0] != deadline:
+                # First seen: the wait ends at sim now + its remaining wall length.
+                pin = (deadline, now_ns + round(max(deadline - mono, 0.0) * 1e9))
+            pins[key] = pin
+        self._pins = pins
+        self.horizon_ns = max(min(pin[1] for pin in pins.values()) - now_ns, 0)
+        return holder
 
     def can_wake(self) -> bool:
         """Whether anything outside the loop could still make a task runnable."""
@@ -309,14 +315,29 @@ class OutsideWork:
             return True
         return thread_state(current, None) is not ThreadState.PARKED
 
-    def _children_hold(self) -> bool:
+    def _children_hold(self, timed: list[tuple[object, float]]) -> bool:
+        """Whether a child holds sim time outright; a child a task waits on that is asleep
+        in a timed wait whose end the kernel shows (``time.sleep`` in a worker process)
+        is added to ``timed`` instead: like a thread's, that wait is an event in sim time."""
         holds = False
         kept = []
         for child in self._children:
             if _child_finished(child):
+                pid = child.get_pid()
+                if pid is not None:
+                    forget_child(pid)
                 continue
             kept.append(child)
-            holds = holds or self._child_holds(child)
+            if holds or not self._child_holds(child):
+                continue
+            pid = child.get_pid()
+            wait = (
+                child_wait_deadline(pid) if pid is not None and not _child_exited(child) else None
+            )
+            if wait is None:
+                holds = True
+            else:
+                timed.append(wait)
         with self._lock:
             self.active -= len(self._children) - len(kept)
             self._children[:] = kept

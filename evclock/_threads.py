@@ -34,7 +34,9 @@ import time
 import traceback
 import weakref
 from asyncio import base_events
+from collections.abc import Callable
 from types import CodeType, FrameType
+from typing import TypeVar
 
 from ._errors import InvalidArgumentError
 
@@ -387,19 +389,17 @@ _FUTEX_NR = next((nr for nr, rule in (_SYSCALLS or {}).items() if rule is FUTEX)
 _TIMER_ABSTIME = 1
 _FUTEX_WAIT, _FUTEX_WAIT_BITSET, _FUTEX_CLOCK_REALTIME = 0, 9, 256
 _mem_fd: int | None = None
+_K = TypeVar("_K")
 #: Per thread: its timed system call (the syscall line and its timespec) and that call's
 #: deadline on the monotonic clock, computed when first seen.
 _kernel_waits: dict[int, tuple[str, float]] = {}
 
 
-def _read_timespec(address: int) -> float | None:
-    """The ``struct timespec`` at ``address`` in this process (read through
-    ``/proc/self/mem``, which answers EIO rather than crash when the memory is gone)."""
-    global _mem_fd
+def _read_timespec(mem_fd: int, address: int) -> float | None:
+    """The ``struct timespec`` at ``address`` in the process whose ``mem`` file is
+    ``mem_fd`` (``/proc/<pid>/mem`` answers EIO rather than crash when the memory is gone)."""
     try:
-        if _mem_fd is None:
-            _mem_fd = os.open("/proc/self/mem", os.O_RDONLY)
-        raw = os.pread(_mem_fd, 16, address)
+        raw = os.pread(mem_fd, 16, address)
     except (OSError, OverflowError):
         return None
     if len(raw) != 16:
@@ -411,18 +411,9 @@ def _read_timespec(address: int) -> float | None:
     return seconds + nanos / 1e9
 
 
-def _kernel_wait_deadline(thread: threading.Thread) -> float | None:
-    """When ``thread``'s timed system call ends by itself, in ``time.monotonic()`` seconds:
-    ``time.sleep`` (``clock_nanosleep`` with an absolute deadline), ``nanosleep``, and
-    futex waits with a timeout (``Lock.acquire(timeout=...)``, a C library's timed wait).
-    Read from the call's arguments and the timespec they point to, then confirmed by
-    reading the call again (unchanged: the deadline belongs to it). None when unknown."""
-    native_id = thread.native_id
-    if _kernel is None or native_id is None:
-        return None
-    text = _kernel.read(native_id)
-    if text is None:
-        return None
+def _timed_call(text: str) -> tuple[int, bool, int] | None:
+    """For a ``syscall`` line of a timed sleep or futex wait: (address of its timespec,
+    whether that is an absolute deadline, the clock id); None for anything else."""
     fields = text.split()
     if len(fields) < 7 or fields[0] in ("running", "-1"):
         return None
@@ -434,40 +425,138 @@ def _kernel_wait_deadline(thread: threading.Thread) -> float | None:
         if clock_arg is not None:
             clock = args[clock_arg]
         absolute = flags_arg is not None and bool(args[flags_arg] & _TIMER_ABSTIME)
-        pointer = args[pointer_arg]
-    elif number == _FUTEX_NR:
+        return args[pointer_arg], absolute, clock
+    if number == _FUTEX_NR:
         command = args[1] & _FUTEX_CMD_MASK
         if command not in (_FUTEX_WAIT, _FUTEX_WAIT_BITSET) or not args[3]:
             return None
         absolute = command == _FUTEX_WAIT_BITSET  # WAIT's timeout is a length
         if absolute and args[1] & _FUTEX_CLOCK_REALTIME:
             clock = time.CLOCK_REALTIME
-        pointer = args[3]
-    else:
+        return args[3], absolute, clock
+    return None
+
+
+def _timed_deadline(
+    waits: dict[_K, tuple[str, float]],
+    key: _K,
+    text: str,
+    mem_fd: int,
+    reread: Callable[[], str | None],
+) -> float | None:
+    """The monotonic deadline of the timed call ``text`` (see :func:`_timed_call`), read
+    from its timespec and confirmed by reading the call again (unchanged: the deadline
+    belongs to it); ``waits[key]`` keeps it per call, so that it stays one value."""
+    call = _timed_call(text)
+    if call is None:
         return None
-    value = _read_timespec(pointer)
-    if value is None or _kernel.read(native_id) != text:
+    pointer, absolute, clock = call
+    value = _read_timespec(mem_fd, pointer)
+    if value is None or reread() != text:
         return None
     try:
         now = time.clock_gettime(clock)
     except OSError:
         return None
     mono = time.monotonic()
-    ident = thread.ident or 0
-    key = f"{text} {value!r}"
-    seen = _kernel_waits.get(ident)
+    identity = f"{text} {value!r}"
+    seen = waits.get(key)
     if absolute:
-        # Converted to the monotonic clock once per wait, so that it stays one value.
-        if seen is None or seen[0] != key:
-            seen = (key, mono + (value - now))
-            _kernel_waits[ident] = seen
+        if seen is None or seen[0] != identity:  # converted to the monotonic clock once
+            seen = (identity, mono + (value - now))
+            waits[key] = seen
         return seen[1]
     # A length: timed from when the call is first seen (at or after its start), and again
     # from now once that end has passed (the same call site sleeping anew).
-    if seen is None or seen[0] != key or seen[1] < mono:
-        seen = (key, mono + value)
-        _kernel_waits[ident] = seen
+    if seen is None or seen[0] != identity or seen[1] < mono:
+        seen = (identity, mono + value)
+        waits[key] = seen
     return seen[1]
+
+
+def _own_mem() -> int | None:
+    global _mem_fd
+    if _mem_fd is None:
+        try:
+            _mem_fd = os.open("/proc/self/mem", os.O_RDONLY)
+        except OSError:
+            return None
+    return _mem_fd
+
+
+def _kernel_wait_deadline(thread: threading.Thread) -> float | None:
+    """When ``thread``'s timed system call ends by itself, in ``time.monotonic()`` seconds:
+    ``time.sleep`` (``clock_nanosleep`` with an absolute deadline), ``nanosleep``, and
+    futex waits with a timeout (``Lock.acquire(timeout=...)``, a C library's timed wait).
+    None when unknown."""
+    native_id = thread.native_id
+    kernel = _kernel
+    if kernel is None or native_id is None:
+        return None
+    text = kernel.read(native_id)
+    mem_fd = _own_mem()
+    if text is None or mem_fd is None:
+        return None
+    return _timed_deadline(
+        _kernel_waits, thread.ident or 0, text, mem_fd, lambda: kernel.read(native_id)
+    )
+
+
+#: Per (child pid, thread id): its timed call and deadline, as ``_kernel_waits``.
+_child_waits: dict[tuple[int, int], tuple[str, float]] = {}
+
+
+def child_wait_deadline(pid: int) -> tuple[str, float] | None:
+    """A child process that is asleep, every thread of it blocked, at least one in a timed
+    wait whose end the kernel shows (``time.sleep`` in the child): (an identity of that
+    wait, its monotonic deadline) for the earliest. None when any thread runs, or a timed
+    wait's length cannot be read, or nothing is timed (Linux only; reading another
+    process's memory needs ptrace rights over it, which a parent has by default)."""
+    if _kernel is None:
+        return None
+    base = f"/proc/{pid}"
+    try:
+        tids = sorted(int(name) for name in os.listdir(f"{base}/task"))
+        mem_fd = os.open(f"{base}/mem", os.O_RDONLY)
+    except (OSError, ValueError):
+        return None
+    try:
+        earliest: tuple[str, float] | None = None
+        for tid in tids:
+
+            def read(tid: int = tid) -> str | None:
+                try:
+                    with open(f"{base}/task/{tid}/stat", "rb") as stat:
+                        state = stat.read().rpartition(b")")[2].split()[:1]
+                    if state == [b"R"]:
+                        return "running"
+                    with open(f"{base}/task/{tid}/syscall", "rb") as syscall:
+                        return syscall.read().decode("ascii", "replace")
+                except OSError:
+                    return None
+
+            text = read()
+            if text is None:
+                return None
+            state = _state_from_syscall(text, event_loop=False)
+            if state is ThreadState.RUNNING:
+                return None
+            if state is not ThreadState.TIMED:
+                continue  # parked, or blocked on I/O: not what ends the wait
+            deadline = _timed_deadline(_child_waits, (pid, tid), text, mem_fd, read)
+            if deadline is None:
+                return None
+            if earliest is None or deadline < earliest[1]:
+                earliest = (f"{pid}:{tid}:{_child_waits[(pid, tid)][0]}", deadline)
+        return earliest
+    finally:
+        os.close(mem_fd)
+
+
+def forget_child(pid: int) -> None:
+    """A child is gone: drop what was kept about its waits."""
+    for key in [k for k in _child_waits if k[0] == pid]:
+        del _child_waits[key]
 
 
 def describe_thread(thread: threading.Thread, state: ThreadState) -> str:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import os
 import queue
 import signal
@@ -148,6 +149,27 @@ def test_anyio_wait_returns_on_exit_while_a_grandchild_keeps_stdout_open() -> No
         return code, sim_time()
 
     assert evclock.run(main()) == (0, 0.0)
+
+
+def test_a_child_asleep_in_a_timed_wait_is_an_event_in_sim_time() -> None:
+    """anyio's to_process test_cancel_during: the worker process sleeps 5 s (time.sleep,
+    whose end the kernel shows) while a task waits on its reply; a 0.1 s sim sleep ends
+    first, as on stock asyncio, and cancelling the call kills the worker."""
+
+    async def main() -> tuple[float, float, bool]:
+        first_pid = await anyio.to_process.run_sync(os.getpid)
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(
+                functools.partial(anyio.to_process.run_sync, cancellable=True), time.sleep, 5
+            )
+            await asyncio.sleep(0.1)  # ends while the worker still sleeps
+            slept_until = sim_time()
+            tg.cancel_scope.cancel()
+        cancelled_at = sim_time()
+        second_pid = await anyio.to_process.run_sync(os.getpid)
+        return slept_until, cancelled_at, second_pid != first_pid
+
+    assert evclock.run(main()) == (0.1, 0.1, True)
 
 
 # ------------------------------------------------------------------------ signals
