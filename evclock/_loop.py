@@ -402,6 +402,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """
         holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
         if holder is None:
+            # Bytes that arrived since this iteration polled (a peer thread's reply, just
+            # delivered while the thread went back to waiting) are handled before time
+            # moves: the kernel finds them ready and does not advance.
+            if len(self._io_map) > self._quiet_fds:
+                self._poll_io(0)
             return False
         horizon = self._outside.horizon_ns
         if horizon is None:

@@ -57,6 +57,7 @@ from ._threads import (
     survey,
     thread_state,
     wait_deadline,
+    waited_fds,
 )
 
 _T = TypeVar("_T")
@@ -77,6 +78,14 @@ try:  # Linux: the unsent/unacknowledged bytes of a TCP socket
     _TIOCOUTQ: int | None = termios.TIOCOUTQ if sys.platform.startswith("linux") else None
 except ImportError:  # pragma: no cover - Windows
     _TIOCOUTQ = None
+
+
+def _queued(fd: int, request: int) -> int:
+    """A socket's queued byte count (``ioctl``); 0 for anything else (ENOTTY)."""
+    try:
+        return int(struct.unpack("i", fcntl.ioctl(fd, request, b"\0\0\0\0"))[0])
+    except OSError:
+        return 0
 
 
 class OutsideWork:
@@ -198,8 +207,11 @@ class OutsideWork:
         timed: list[tuple[object, float]] = []  # (which wait, its monotonic deadline)
         if self._children and self._children_hold(timed):
             return EXACT
-        if _TIOCOUTQ is not None and self._bytes_in_flight():
-            return INFERRED
+        if _TIOCOUTQ is not None:
+            if self.watch_threads and threads is None:
+                threads = survey(self._loop_thread_id())
+            if self._bytes_in_flight(threads or ()):
+                return INFERRED
         holder = EXACT  # children's timed waits end in output or an exit: both wake us
         if self.watch_threads:
             if threads is None:
@@ -266,23 +278,34 @@ class OutsideWork:
 
     # ------------------------------------------------------------- internals
 
-    def _bytes_in_flight(self) -> bool:
-        """Bytes the loop wrote to a TCP socket that the kernel has not delivered yet: on
-        loopback they arrive within milliseconds (an in-process TLS peer's close_notify),
-        so they hold sim time while that count moves. Bytes that stay put for
-        ``IN_FLIGHT_PATIENCE`` are not in flight: the peer is not reading (its window is
-        full), which is the peer's business, not the kernel's."""
+    def _bytes_in_flight(self, threads: Iterable[tuple[threading.Thread, ThreadState]]) -> bool:
+        """Bytes on their way through the kernel, which on loopback arrive within
+        milliseconds, hold sim time while their count moves:
+
+        * bytes the loop wrote to a socket that the kernel has not delivered yet (an
+          in-process TLS peer's close_notify);
+        * bytes a thread blocked on a socket (``poll``, ``recv``) wrote to it that have
+          not arrived yet: Nagle's algorithm keeps a small record (a TLS peer's reply)
+          until the loop's side acknowledges the previous one, up to a delayed-ACK period,
+          while the thread already waits for the answer; and sent bytes wait for their
+          acknowledgement (counted until then, which bounds the same way).
+
+        Bytes that stay put for ``IN_FLIGHT_PATIENCE`` are not in flight: the peer is not
+        reading (its window is full), which is the peer's business, not the kernel's."""
         assert _TIOCOUTQ is not None
         pending = {}
         for key in list(self._registered()):
             # Transports register bare fds: ask every one; what is not a socket says so
             # (ENOTTY). A Unix socket counts its peer's unread bytes: bounded the same way.
-            try:
-                unsent = struct.unpack("i", fcntl.ioctl(key.fd, _TIOCOUTQ, b"\0\0\0\0"))[0]
-            except OSError:
-                continue
+            unsent = _queued(key.fd, _TIOCOUTQ)
             if unsent:
                 pending[key.fd] = unsent
+        for thread, state in threads:
+            if state is ThreadState.WAITING_IO:
+                for fd in waited_fds(thread):
+                    unsent = _queued(fd, _TIOCOUTQ)
+                    if unsent:
+                        pending[-1 - fd] = unsent  # apart from the loop's own descriptors
         now = time.monotonic()
         if pending != self._in_flight:
             self._in_flight = pending

@@ -559,6 +559,49 @@ def forget_child(pid: int) -> None:
         del _child_waits[key]
 
 
+# ------------------------------------------ which descriptors a thread waits on (Linux)
+
+#: System calls that wait on descriptors: "poll" (a pollfd array and its length in the first
+#: two arguments) or "fd" (the descriptor is the first argument).
+_FD_WAITS: dict[int, str] = (
+    {7: "poll", 271: "poll", 0: "fd", 19: "fd", 45: "fd", 47: "fd"}
+    if _SYSCALLS is _X86_64
+    else {73: "poll", 63: "fd", 65: "fd", 207: "fd", 212: "fd"}
+)
+_MAX_POLL_FDS = 64
+
+
+def waited_fds(thread: threading.Thread) -> list[int]:
+    """The descriptors ``thread`` is blocked on, if it waits in ``poll``/``ppoll`` (how a
+    socket with a timeout waits) or in a ``read``/``recv`` on one descriptor: from its
+    system call's arguments (and the pollfd array they point to). Empty when unknown."""
+    native_id = thread.native_id
+    kernel = _kernel
+    if kernel is None or native_id is None:
+        return []
+    text = kernel.read(native_id)
+    fields = text.split() if text is not None else []
+    if len(fields) < 7 or fields[0] in ("running", "-1"):
+        return []
+    kind = _FD_WAITS.get(int(fields[0]))
+    args = [int(value, 16) for value in fields[1:3]]
+    if kind == "fd":
+        return [args[0]] if args[0] < 2**31 else []
+    mem_fd = _own_mem()
+    if kind != "poll" or mem_fd is None or not 0 < args[1] <= _MAX_POLL_FDS:
+        return []
+    try:
+        raw = os.pread(mem_fd, 8 * args[1], args[0])  # struct pollfd {int fd; short; short}
+    except (OSError, OverflowError):
+        return []
+    if kernel.read(native_id) != text or len(raw) != 8 * args[1]:
+        return []
+    fds = [
+        int.from_bytes(raw[i : i + 4], sys.byteorder, signed=True) for i in range(0, len(raw), 8)
+    ]
+    return [fd for fd in fds if fd >= 0]
+
+
 def describe_thread(thread: threading.Thread, state: ThreadState) -> str:
     """A thread's name, state and innermost frames, for error messages."""
     frame = sys._current_frames().get(thread.ident or 0)

@@ -8,9 +8,11 @@ import asyncio
 import concurrent.futures
 import functools
 import os
+import pathlib
 import queue
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import threading
@@ -323,6 +325,64 @@ def test_a_peer_thread_in_time_sleep_lets_a_short_sim_timeout_fire_first() -> No
         return timed_out_at, rest, sim_time()
 
     assert evclock.run(main()) == (0.1, b"", 0.1)
+
+
+def _self_signed(tmp_path: pathlib.Path) -> tuple[str, str]:
+    cert, key = str(tmp_path / "cert.pem"), str(tmp_path / "key.pem")
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", key,
+         "-out", cert, "-days", "1", "-subj", "/CN=localhost"],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    return cert, key
+
+
+def test_a_tls_peer_thread_on_a_blocking_socket_gives_no_false_timeout(
+    tmp_path: pathlib.Path,
+) -> None:
+    """test_ssl's threaded TLS server: its small records (session tickets, then b"O")
+    can wait in its socket for the loop's ACK (Nagle) while the thread already blocks in
+    recv; those unsent bytes are in flight, so no 30 s timeout fires in sim time."""
+    cert, key = _self_signed(tmp_path)
+    server_ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    server_ctx.load_cert_chain(cert, key)
+    client_ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    client_ctx.load_verify_locations(cert)
+    hello = b"1" * 1000
+
+    async def main() -> list[object]:
+        server = socket.create_server(("127.0.0.1", 0))
+        got: list[object] = []
+
+        def serve() -> None:
+            conn, _ = server.accept()
+            conn.settimeout(20)  # a safety bound: it waits in poll(), like test_ssl's
+            tls = server_ctx.wrap_socket(conn, server_side=True)
+            tls.sendall(b"O")
+            data = b""
+            while len(data) < len(hello):
+                data += tls.recv(len(hello) - len(data))
+            got.append(len(data))
+            tls.unwrap()
+            tls.close()
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        loop = asyncio.get_running_loop()
+        port = server.getsockname()[1]
+        reader, writer = await asyncio.wait_for(
+            asyncio.open_connection("127.0.0.1", port, ssl=client_ctx, server_hostname="localhost"),
+            30,
+        )
+        got.append(await asyncio.wait_for(reader.readexactly(1), 30))
+        writer.write(hello)
+        got.append(await asyncio.wait_for(reader.read(), 30))  # the peer's close_notify
+        writer.close()
+        await asyncio.to_thread(thread.join, 20)
+        server.close()
+        return [*got, loop.time()]
+
+    assert evclock.run(main()) == [b"O", 1000, b"", 0.0]
 
 
 @pytest.mark.parametrize("blocker", ["lock", "simple_queue"])
