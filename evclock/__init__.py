@@ -39,6 +39,7 @@ from ._errors import (
     StallError,
     TimeLookupError,
     TraceError,
+    WrongThreadError,
 )
 from ._jumps import JumpHandle, JumpThreshold, TimeJump
 from ._loop import SimEventLoop
@@ -100,6 +101,7 @@ __all__ = [
     "MissingExtraError",
     "NoSimulationError",
     "NotRunningError",
+    "WrongThreadError",
     "PacingError",
     "ParticipantLost",
     "PhysicsError",

@@ -35,6 +35,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import threading
 import time
 from collections.abc import Callable, Iterator
 from types import TracebackType
@@ -50,6 +51,7 @@ from ._errors import (
     LoopClosedError,
     NotRunningError,
     SimDriverError,
+    WrongThreadError,
 )
 from ._loop import SimEventLoop
 from ._pacing import DEFAULT_MAX_LAG, PacingControls
@@ -202,8 +204,14 @@ class SimDriver(PacingControls):
     ``SimDriver(source)`` can go on from the same time (close a PyBullet source you connected
     yourself). If the driver fails (a :class:`LagError` in strict mode, a
     :class:`PhysicsError`), pending waits and :meth:`run_until` raise that error and
-    :meth:`stop` re-raises it unless :meth:`run_until` already did. Controls
-    (:meth:`pause`, :meth:`step`, ...) and waits must be used from the loop's thread.
+    :meth:`stop` re-raises it unless :meth:`run_until` already did.
+
+    **Threads.** The controls (:meth:`pause`, :meth:`resume`, :meth:`step`,
+    :meth:`step_until`, ``rtf``, :meth:`achieved_rtf`) and :meth:`hold_time` are
+    thread-safe: a GUI or operator thread calls them directly and the driver wakes at once.
+    Waits (:meth:`run_until`, ``clock.sleep``) and :meth:`stop` are awaited on the driver's
+    loop; from another thread they raise :class:`WrongThreadError` - hand them to the loop
+    with ``asyncio.run_coroutine_threadsafe(sim.run_until(t), sim.loop)``.
 
     :param source: what owns sim time; default a :class:`VirtualTimeSource` starting at 0.
     :param rtf: real-time factor: None = as fast as possible, 1.0 = real time, k = k x.
@@ -259,6 +267,7 @@ class SimDriver(PacingControls):
         self._probe = _WakeProbe(self)
         self._overran = False
         self._holds = 0
+        self._holds_lock = threading.Lock()
         self._draining = False
         self._step_until_ns: int | None = None
         self._previous_clock: Clock | None = None
@@ -382,6 +391,7 @@ class SimDriver(PacingControls):
         if self._state is _NEW:
             self._state = _STOPPED
             return
+        self._check_loop_thread("stop()")
         task = self._task
         assert task is not None
         if not task.done():
@@ -413,6 +423,7 @@ class SimDriver(PacingControls):
         ``when`` again.
         """
         when_ns = self._target_ns(when)
+        self._check_loop_thread("run_until(t)")
         if self._state is _STOPPED:
             raise LoopClosedError(self._stopped_message())
         if self._state is _NEW:
@@ -441,6 +452,20 @@ class SimDriver(PacingControls):
             )
         return to_sim_time_ns(when, "run_until() time")
 
+    def _check_loop_thread(self, what: str) -> None:
+        """Refuse to await ``what`` anywhere but on the driver's running loop."""
+        loop = self._loop
+        if self._state is not _RUNNING or loop is None:
+            return
+        if asyncio.events._get_running_loop() is not loop:
+            raise WrongThreadError(
+                f"SimDriver.{what} must be awaited on the event loop the driver runs on, "
+                "but it was called from another thread (or loop); hand it to the driver's "
+                f"loop with asyncio.run_coroutine_threadsafe(sim.{what}"
+                ", sim.loop).result(timeout), or call the thread-safe controls (pause(), "
+                "resume(), step(), step_until(), rtf) directly"
+            )
+
     def _stopped_message(self) -> str:
         message = (
             "this SimDriver is stopped and cannot be used again; create a new SimDriver "
@@ -463,6 +488,28 @@ class SimDriver(PacingControls):
             "to start paused"
         )
 
+    def _on_host_thread(self) -> bool:
+        loop = self._loop
+        thread_id = getattr(loop, "_thread_id", _UNKNOWN)  # BaseEventLoop's running thread
+        if thread_id is not _UNKNOWN:
+            return thread_id is None or thread_id == threading.get_ident()
+        # Loops that do not say which thread runs them (uvloop): the caller is on the
+        # driver's loop exactly when that loop is running in the caller's thread.
+        return asyncio.events._get_running_loop() is loop
+
+    def _call_on_host(self, what: str, reaction: Callable[[], None]) -> None:
+        # The same mechanism as SimEventLoop's: the pacer changed in the calling thread;
+        # the driver's reaction (waking its wait) runs on the loop's thread.
+        loop = self._loop
+        assert loop is not None
+        try:
+            loop.call_soon_threadsafe(reaction)
+        except RuntimeError:  # the loop closed meanwhile
+            raise LoopClosedError(
+                f"SimDriver.{what} was called from another thread after the driver's event "
+                "loop closed; there is nothing left to control"
+            ) from None
+
     def _pacing_changed(self) -> None:
         if self._core.pacer.run_until_ns is None:
             self._step_until_ns = None  # pause() and resume() end a step_until()
@@ -483,19 +530,27 @@ class SimDriver(PacingControls):
 
     @contextlib.contextmanager
     def hold_time(self) -> Iterator[None]:
-        """Keep sim time from advancing while the block runs (from the loop's thread).
+        """Keep sim time from advancing while the block runs (thread-safe).
 
         The driver cannot see work outside the loop (threads, executor jobs, a reply from
         another process): wrap it to keep it in lockstep, e.g.
-        ``with sim.hold_time(): data = await asyncio.to_thread(read_sensor)``.
+        ``with sim.hold_time(): data = await asyncio.to_thread(read_sensor)``, or use it
+        in the thread doing that work.
         """
-        self._holds += 1
+        with self._holds_lock:
+            self._holds += 1
         try:
             yield
         finally:
-            self._holds -= 1
-            if not self._holds:
-                self._wake_driver()
+            with self._holds_lock:
+                self._holds -= 1
+                last = not self._holds
+            if last:
+                if self._on_host_thread():
+                    self._wake_driver()
+                elif self._state is _RUNNING:
+                    with contextlib.suppress(LoopClosedError):  # closed: nothing to wake
+                        self._call_on_host("hold_time()", self._wake_driver)
 
     # ------------------------------------------------ what the kernel asks the driver
 

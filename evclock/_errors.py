@@ -144,3 +144,8 @@ class RemoteCallError(RemoteClockError):
 
 class Ros2MessageError(EvClockError, ValueError):
     """A ROS 2 ``/clock`` sample evclock cannot read: bad CDR, invalid time, unknown type hash."""
+
+
+class WrongThreadError(NotRunningError):
+    """A method that runs only on a loop's (or driver's) own thread was called from another;
+    the message names the thread-safe way to get it done (``run_coroutine_threadsafe``)."""

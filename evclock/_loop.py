@@ -190,6 +190,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             lambda: self._io_map.values(),
             self._write_to_self,
             watch_threads=bool(watch_threads),
+            sim_now=lambda: self._core.now_ns,
         )
         #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
@@ -401,6 +402,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """
         holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
         if holder is None:
+            # Bytes that arrived since this iteration polled (a peer thread's reply, just
+            # delivered while the thread went back to waiting) are handled before time
+            # moves: the kernel finds them ready and does not advance.
+            if len(self._io_map) > self._quiet_fds:
+                self._poll_io(0)
             return False
         horizon = self._outside.horizon_ns
         if horizon is None:
@@ -435,15 +441,30 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _wait_pacing(self, delay: float | None) -> None:
         """Wait as pacing asks, serving I/O: ``delay`` wall seconds, None until a control
-        changes (paused with no step left)."""
-        if delay is None and len(self._io_map) <= 1 and not could_call_back(self._thread_id):
+        changes (paused with no step left).
+
+        Paused, the loop waits for as long as anything could still resume it (a resume may
+        come from a task woken by any of them): registered I/O, a signal handler, a child
+        process, executor jobs or holds in flight, or any other live thread (an operator
+        thread idle in its own event wait counts). Unbounded, as a pause is: it ends with a
+        control. With none of these it is a deadlock.
+        """
+        if delay is None and not self._could_resume():
             raise DeadlockError(
-                "the loop is paused and nothing could ever resume it: no I/O is "
-                "registered and no other thread runs; call resume() or step() from a "
-                "task before pausing, or serve a control channel (socket) that can",
+                "the loop is paused and nothing could ever resume it: no I/O or signal "
+                "handler is registered, no child process runs and no other thread runs; "
+                "call resume() or step() from a task before pausing, or serve a control "
+                "channel (a socket, a signal handler) that can",
                 self._describe_waiting_tasks(),
             )
         self._poll_io(delay)
+
+    def _could_resume(self) -> bool:
+        # OUTSIDE HOOK: the outside model's wake sources (I/O, signal handlers, children,
+        # jobs, holds), and any other thread at all: an idle GUI thread may call resume().
+        if len(self._io_map) > 1 or could_call_back(self._thread_id):
+            return True
+        return self._outside.can_wake()
 
     def _held_for(self) -> float:
         now = time.monotonic()
@@ -568,10 +589,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _pacing_changed(self) -> None:
         self._update_fast_path()
-        # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) wakes
-        # the loop, which may be blocked in a pacing or pause wait (DESIGN 5).
-        if self._thread_id is not None and threading.get_ident() != self._thread_id:
-            self._write_to_self()
+
+    # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) changes the
+    # pacer there and hands the loop its reaction, which wakes a pacing or pause wait
+    # (DESIGN 5; the mechanism is PacingControls', shared with SimDriver). Until that
+    # callback ran, the loop does not advance: it runs what is ready first.
+
+    def _on_host_thread(self) -> bool:
+        return self._thread_id is None or threading.get_ident() == self._thread_id
+
+    def _call_on_host(self, what: str, reaction: Callable[[], None]) -> None:
+        self.call_soon_threadsafe(reaction)
 
     def _stepping_until(self, when_ns: int) -> None:
         self._core.stop_at(when_ns)  # virtual time stops exactly there

@@ -12,9 +12,11 @@ loop asks whenever nothing is runnable at the current sim time:
   timeout on a lock, condition or queue, which only another thread can end (a job waiting
   for ``run_coroutine_threadsafe(...).result()`` waits for the loop: time must move);
 * child processes the loop started, while they run and a task waits on them: on their exit
-  (``Process.wait()``, ``communicate()``) or on their output (a read on their stdout or
-  stderr). A child started with a protocol of your own holds while it runs (evclock cannot
-  see what is awaited). A child nobody waits on does not hold: a long-running helper
+  (``Process.wait()``, ``communicate()``, anyio's ``Process.wait()``) or on their output (a
+  read on their stdout or stderr); after the exit, a read (or asyncio's ``wait()``, which
+  also waits for the pipes) while a grandchild keeps their pipes open. A child started
+  with a protocol of your own holds while it runs (evclock cannot see what is awaited).
+  A child nobody waits on does not hold: a long-running helper
   process lets the simulation run; its output and its exit still wake the loop.
 
 Inferred: socket bytes the loop wrote that the kernel is still delivering (Linux; they
@@ -49,10 +51,13 @@ from ._threads import (
     HOLDING_STATES,
     WAKING_STATES,
     ThreadState,
+    child_wait_deadline,
     describe_thread,
+    forget_child,
     survey,
     thread_state,
     wait_deadline,
+    waited_fds,
 )
 
 _T = TypeVar("_T")
@@ -75,6 +80,14 @@ except ImportError:  # pragma: no cover - Windows
     _TIOCOUTQ = None
 
 
+def _queued(fd: int, request: int) -> int:
+    """A socket's queued byte count (``ioctl``); 0 for anything else (ENOTTY)."""
+    try:
+        return int(struct.unpack("i", fcntl.ioctl(fd, request, b"\0\0\0\0"))[0])
+    except OSError:
+        return 0
+
+
 class OutsideWork:
     """Everything outside one loop that may hold its sim time or wake it."""
 
@@ -87,6 +100,7 @@ class OutsideWork:
         wake_loop: Callable[[], None],
         *,
         watch_threads: bool,
+        sim_now: Callable[[], int] = lambda: 0,
     ) -> None:
         self._loop_thread_id = loop_thread_id
         self._io_registered = io_registered
@@ -96,6 +110,10 @@ class OutsideWork:
         self._in_flight_since = 0.0
         self.horizon_ns: int | None = None
         self._wake_loop = wake_loop
+        self._sim_now = sim_now
+        #: Timed waits seen (of threads and children): which wait -> (its monotonic
+        #: deadline, the sim time it ends at).
+        self._pins: dict[object, tuple[float, int]] = {}
         self.watch_threads = watch_threads
         self._lock = threading.Lock()
         self._holds = 0
@@ -165,10 +183,14 @@ class OutsideWork:
     def holder(self) -> str | None:
         """Whether sim time is held now: EXACT, INFERRED, or None.
 
-        When held only by threads in timed waits of known length (``Event.wait(3)``),
-        :attr:`horizon_ns` says how far sim time may still move: as on stock asyncio, where
-        loop timers and thread timeouts race on one clock, what is due before the first of
-        those waits ends happens first. Otherwise it is None: sim time stands still.
+        When held only by threads in timed waits of known length (``Event.wait(3)``,
+        ``time.sleep(1)``), :attr:`horizon_ns` says how far sim time may still move: as on
+        stock asyncio, where loop timers and thread timeouts race on one clock, what is due
+        before the first of those waits ends happens first. Each such wait is an event on
+        sim time, placed when it is first seen at sim ``now`` + its remaining wall length
+        (sim time has not moved since the thread entered it: a running thread holds it),
+        and kept there: sim time may advance up to it, then holds until the thread acts.
+        Otherwise it is None: sim time stands still.
         """
         self.horizon_ns = None
         if self._holds or self._alarm_pending():
@@ -182,27 +204,43 @@ class OutsideWork:
                     threads = survey(self._loop_thread_id())
                 if self._job_thread_holds(where, threads):
                     return EXACT
-        if self._children and self._children_hold():
+        timed: list[tuple[object, float]] = []  # (which wait, its monotonic deadline)
+        if self._children and self._children_hold(timed):
             return EXACT
-        if _TIOCOUTQ is not None and self._bytes_in_flight():
-            return INFERRED
+        if _TIOCOUTQ is not None:
+            if self.watch_threads and threads is None:
+                threads = survey(self._loop_thread_id())
+            if self._bytes_in_flight(threads or ()):
+                return INFERRED
+        holder = EXACT  # children's timed waits end in output or an exit: both wake us
         if self.watch_threads:
             if threads is None:
                 threads = survey(self._loop_thread_id())
             jobs = self._job_threads()
-            horizon = None
             for thread, state in threads:
                 if state not in HOLDING_STATES or thread.ident in jobs:
                     continue
                 deadline = wait_deadline(thread) if state is ThreadState.TIMED else None
                 if deadline is None:
+                    self._pins = {}
                     return INFERRED  # running, or a timed wait of unknown length
-                remaining = max(deadline - time.monotonic(), 0.0)
-                horizon = remaining if horizon is None else min(horizon, remaining)
-            if horizon is not None:
-                self.horizon_ns = round(horizon * 1e9)
-                return INFERRED
-        return None
+                timed.append((thread.ident or 0, deadline))
+                holder = INFERRED
+        if not timed:
+            self._pins = {}
+            return None
+        now_ns = self._sim_now()
+        mono = time.monotonic()
+        pins = {}
+        for key, deadline in timed:
+            pin = self._pins.get(key)
+            if pin is None or pin[0] != deadline:
+                # First seen: the wait ends at sim now + its remaining wall length.
+                pin = (deadline, now_ns + round(max(deadline - mono, 0.0) * 1e9))
+            pins[key] = pin
+        self._pins = pins
+        self.horizon_ns = max(min(pin[1] for pin in pins.values()) - now_ns, 0)
+        return holder
 
     def can_wake(self) -> bool:
         """Whether anything outside the loop could still make a task runnable."""
@@ -240,23 +278,34 @@ class OutsideWork:
 
     # ------------------------------------------------------------- internals
 
-    def _bytes_in_flight(self) -> bool:
-        """Bytes the loop wrote to a TCP socket that the kernel has not delivered yet: on
-        loopback they arrive within milliseconds (an in-process TLS peer's close_notify),
-        so they hold sim time while that count moves. Bytes that stay put for
-        ``IN_FLIGHT_PATIENCE`` are not in flight: the peer is not reading (its window is
-        full), which is the peer's business, not the kernel's."""
+    def _bytes_in_flight(self, threads: Iterable[tuple[threading.Thread, ThreadState]]) -> bool:
+        """Bytes on their way through the kernel, which on loopback arrive within
+        milliseconds, hold sim time while their count moves:
+
+        * bytes the loop wrote to a socket that the kernel has not delivered yet (an
+          in-process TLS peer's close_notify);
+        * bytes a thread blocked on a socket (``poll``, ``recv``) wrote to it that have
+          not arrived yet: Nagle's algorithm keeps a small record (a TLS peer's reply)
+          until the loop's side acknowledges the previous one, up to a delayed-ACK period,
+          while the thread already waits for the answer; and sent bytes wait for their
+          acknowledgement (counted until then, which bounds the same way).
+
+        Bytes that stay put for ``IN_FLIGHT_PATIENCE`` are not in flight: the peer is not
+        reading (its window is full), which is the peer's business, not the kernel's."""
         assert _TIOCOUTQ is not None
         pending = {}
         for key in list(self._registered()):
             # Transports register bare fds: ask every one; what is not a socket says so
             # (ENOTTY). A Unix socket counts its peer's unread bytes: bounded the same way.
-            try:
-                unsent = struct.unpack("i", fcntl.ioctl(key.fd, _TIOCOUTQ, b"\0\0\0\0"))[0]
-            except OSError:
-                continue
+            unsent = _queued(key.fd, _TIOCOUTQ)
             if unsent:
                 pending[key.fd] = unsent
+        for thread, state in threads:
+            if state is ThreadState.WAITING_IO:
+                for fd in waited_fds(thread):
+                    unsent = _queued(fd, _TIOCOUTQ)
+                    if unsent:
+                        pending[-1 - fd] = unsent  # apart from the loop's own descriptors
         now = time.monotonic()
         if pending != self._in_flight:
             self._in_flight = pending
@@ -289,14 +338,29 @@ class OutsideWork:
             return True
         return thread_state(current, None) is not ThreadState.PARKED
 
-    def _children_hold(self) -> bool:
+    def _children_hold(self, timed: list[tuple[object, float]]) -> bool:
+        """Whether a child holds sim time outright; a child a task waits on that is asleep
+        in a timed wait whose end the kernel shows (``time.sleep`` in a worker process)
+        is added to ``timed`` instead: like a thread's, that wait is an event in sim time."""
         holds = False
         kept = []
         for child in self._children:
-            if _child_exited(child):
+            if _child_finished(child):
+                pid = child.get_pid()
+                if pid is not None:
+                    forget_child(pid)
                 continue
             kept.append(child)
-            holds = holds or self._child_holds(child)
+            if holds or not self._child_holds(child):
+                continue
+            pid = child.get_pid()
+            wait = (
+                child_wait_deadline(pid) if pid is not None and not _child_exited(child) else None
+            )
+            if wait is None:
+                holds = True
+            else:
+                timed.append(wait)
         with self._lock:
             self.active -= len(self._children) - len(kept)
             self._children[:] = kept
@@ -304,14 +368,31 @@ class OutsideWork:
 
     @staticmethod
     def _child_holds(child: asyncio.SubprocessTransport) -> bool:
-        if _child_exited(child):
+        """A task waits on the child: on its exit while it runs, or on its output while
+        that is open - also after the child exited, when a grandchild that inherited the
+        pipe still holds it (it will write or close)."""
+        if _child_finished(child):
             return False
         # asyncio internals (no public equivalent): the futures of Process.wait() callers.
+        # asyncio resolves them once the child exited *and* its pipes closed: they hold
+        # after the exit too while a grandchild keeps a pipe open.
         if any(not w.done() for w in getattr(child, "_exit_waiters", None) or ()):
             return True
+        exited = _child_exited(child)
         protocol = child.get_protocol()
-        if not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
-            return True  # a protocol of the user's: what it awaits is invisible
+        if not exited:
+            if not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
+                return True  # a protocol of the user's: what it awaits is invisible
+            # anyio's subclass (_ProcessStreamProtocol) signals the exit with an
+            # asyncio.Event ``exited`` that its Process.wait() awaits: Event._waiters
+            # holds the futures of the tasks waiting on it (asyncio internal).
+            exit_event = getattr(protocol, "exited", None)
+            if isinstance(exit_event, asyncio.Event) and any(
+                not w.done() for w in getattr(exit_event, "_waiters", None) or ()
+            ):
+                return True
+        elif not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
+            return False
         for reader in (protocol.stdout, protocol.stderr):
             # StreamReader._waiter: the future of a pending read (asyncio internal).
             waiter = getattr(reader, "_waiter", None) if reader is not None else None
@@ -323,3 +404,11 @@ class OutsideWork:
 def _child_exited(child: asyncio.SubprocessTransport) -> bool:
     # BaseSubprocessTransport._returncode: set when the exit was reported to the loop.
     return getattr(child, "_returncode", None) is not None
+
+
+def _child_finished(child: asyncio.SubprocessTransport) -> bool:
+    # BaseSubprocessTransport._finished: exited and every pipe closed (asyncio internal);
+    # a closed transport (killed or given up) counts as finished too.
+    if getattr(child, "_finished", False):
+        return True
+    return child.is_closing() and _child_exited(child)

@@ -34,7 +34,9 @@ import time
 import traceback
 import weakref
 from asyncio import base_events
+from collections.abc import Callable
 from types import CodeType, FrameType
+from typing import TypeVar
 
 from ._errors import InvalidArgumentError
 
@@ -246,23 +248,27 @@ class _KernelView:
             self._files[native_id] = files
         return files
 
-    def read(self, native_id: int) -> str | None:
+    def read(self, native_id: int, *, remember: bool = False) -> str | None:
         """The thread's ``syscall`` line, or "running" when the scheduler has it runnable:
         a thread woken (a futex released, bytes arrived) but not yet on a CPU still shows
-        the system call it is leaving."""
+        the system call it is leaving. ``remember``: the reading a survey keeps, which
+        :meth:`unchanged` compares with."""
         try:
             files = self._open(native_id)
             runs = os.pread(files[2], 128, 0)  # before the system call: see unchanged()
             syscall = os.pread(files[0], 256, 0).decode("ascii", "replace")
             stat = os.pread(files[1], 1024, 0).decode("ascii", "replace")
         except OSError:
-            self._runs.pop(native_id, None)
+            if remember:
+                self._runs.pop(native_id, None)
             return None
         state = stat.rpartition(")")[2].split()[:1]
         if state == ["R"]:
-            self._runs.pop(native_id, None)
+            if remember:
+                self._runs.pop(native_id, None)
             return "running"
-        self._runs[native_id] = runs
+        if remember:
+            self._runs[native_id] = runs
         return syscall
 
     def unchanged(self, native_id: int) -> bool:
@@ -320,7 +326,11 @@ def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadSta
     if from_frames is ThreadState.EVENT_LOOP:
         return from_frames
     native_id = thread.native_id
-    text = _kernel.read(native_id) if _kernel is not None and native_id is not None else None
+    text = (
+        _kernel.read(native_id, remember=True)
+        if _kernel is not None and native_id is not None
+        else None
+    )
     if from_frames is ThreadState.PARKED:
         # Waiting on another party - unless already woken (then it is about to deliver).
         if text is not None:
@@ -362,6 +372,8 @@ def other_threads(loop_thread_id: int | None) -> list[threading.Thread]:
 _surveyed: dict[int, tuple[threading.Thread, ThreadState]] = {}
 #: Threads found unchanged (not run since their last reading) by the latest survey.
 _unchanged: set[int] = set()
+#: Per thread: the end of the timed wait found since its last reading (wait_deadline).
+_deadline_read: dict[int, float] = {}
 
 
 def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadState]]:
@@ -391,14 +403,14 @@ def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadSta
             continue
         if frames is None:
             frames = sys._current_frames()
+        _deadline_read.pop(ident, None)
         known = _surveyed[ident] = (thread, thread_state(thread, frames.get(ident)))
         result.append(known)
     if len(_surveyed) > len(threads):  # some thread ended: forget it
         alive = {t.ident for t in threads}
-        for ident in [i for i in _surveyed if i not in alive]:
-            del _surveyed[ident]
-        for ident in [i for i in _timed_waits if i not in alive]:
-            del _timed_waits[ident]
+        for table in (_surveyed, _deadline_read, _timed_waits, _kernel_waits):
+            for ident in [i for i in table if i not in alive]:
+                del table[ident]
         if _kernel is not None:
             _kernel.forget_except({t.native_id for t in threads if t.native_id is not None})
     return result
@@ -410,15 +422,24 @@ _timed_waits: dict[int, tuple[object, float]] = {}
 
 def wait_deadline(thread: threading.Thread) -> float | None:
     """When ``thread``'s current timed wait ends by itself (``time.monotonic()`` seconds),
-    if it is a ``Condition.wait(timeout)`` (``Event.wait``, ``Queue.get``, ``Timer``);
-    None when unknown (``time.sleep``, a C library's wait).
+    if it is a ``Condition.wait(timeout)`` (``Event.wait``, ``Queue.get``, ``Timer``), or,
+    on Linux, a timed system call whose deadline the kernel shows (``time.sleep``, a
+    ``Lock.acquire(timeout=...)``, a C library's timed futex wait or sleep); None when
+    unknown.
 
     The wait is timed from the first time it is seen, which is at or after its start: the
     deadline may be late, never early (time is held a little longer, never too little).
     """
     ident = thread.ident or 0
-    if ident in _unchanged and ident in _timed_waits:
-        return _timed_waits[ident][1]  # not run since: still in the same wait
+    if ident in _unchanged and ident in _deadline_read:
+        return _deadline_read[ident]  # not run since: still in the same wait
+    deadline = _wait_deadline(thread, ident)
+    if deadline is not None:
+        _deadline_read[ident] = deadline
+    return deadline
+
+
+def _wait_deadline(thread: threading.Thread, ident: int) -> float | None:
     frame: FrameType | None = sys._current_frames().get(ident)
     for _ in range(_FRAME_DEPTH):
         if frame is None:
@@ -434,7 +455,233 @@ def wait_deadline(thread: threading.Thread) -> float | None:
             return seen[1]
         frame = frame.f_back
     _timed_waits.pop(ident, None)
+    return _kernel_wait_deadline(thread)
+
+
+# ------------------------------------------- the length of a timed wait, from the kernel
+
+#: Per architecture: system call number -> (clock id argument or None for nanosleep's
+#: CLOCK_MONOTONIC-relative request, flags argument or None, timespec pointer argument).
+_SLEEPS: dict[int, tuple[int | None, int | None, int]] = (
+    {35: (None, None, 0), 230: (0, 1, 2)}  # nanosleep, clock_nanosleep
+    if _SYSCALLS is _X86_64
+    else {101: (None, None, 0), 115: (0, 1, 2)}
+)
+_FUTEX_NR = next((nr for nr, rule in (_SYSCALLS or {}).items() if rule is FUTEX), None)
+_TIMER_ABSTIME = 1
+_FUTEX_WAIT, _FUTEX_WAIT_BITSET, _FUTEX_CLOCK_REALTIME = 0, 9, 256
+_mem_fd: int | None = None
+_K = TypeVar("_K")
+#: Per thread: its timed system call (the syscall line and its timespec) and that call's
+#: deadline on the monotonic clock, computed when first seen.
+_kernel_waits: dict[int, tuple[str, float]] = {}
+
+
+def _read_timespec(mem_fd: int, address: int) -> float | None:
+    """The ``struct timespec`` at ``address`` in the process whose ``mem`` file is
+    ``mem_fd`` (``/proc/<pid>/mem`` answers EIO rather than crash when the memory is gone)."""
+    try:
+        raw = os.pread(mem_fd, 16, address)
+    except (OSError, OverflowError):
+        return None
+    if len(raw) != 16:
+        return None
+    seconds = int.from_bytes(raw[:8], sys.byteorder, signed=True)
+    nanos = int.from_bytes(raw[8:], sys.byteorder, signed=True)
+    if seconds < 0 or not 0 <= nanos < 1_000_000_000:
+        return None  # not a timespec (the thread left the call meanwhile)
+    return seconds + nanos / 1e9
+
+
+def _timed_call(text: str) -> tuple[int, bool, int] | None:
+    """For a ``syscall`` line of a timed sleep or futex wait: (address of its timespec,
+    whether that is an absolute deadline, the clock id); None for anything else."""
+    fields = text.split()
+    if len(fields) < 7 or fields[0] in ("running", "-1"):
+        return None
+    number = int(fields[0])
+    args = [int(value, 16) for value in fields[1:7]]
+    clock = time.CLOCK_MONOTONIC
+    if number in _SLEEPS:
+        clock_arg, flags_arg, pointer_arg = _SLEEPS[number]
+        if clock_arg is not None:
+            clock = args[clock_arg]
+        absolute = flags_arg is not None and bool(args[flags_arg] & _TIMER_ABSTIME)
+        return args[pointer_arg], absolute, clock
+    if number == _FUTEX_NR:
+        command = args[1] & _FUTEX_CMD_MASK
+        if command not in (_FUTEX_WAIT, _FUTEX_WAIT_BITSET) or not args[3]:
+            return None
+        absolute = command == _FUTEX_WAIT_BITSET  # WAIT's timeout is a length
+        if absolute and args[1] & _FUTEX_CLOCK_REALTIME:
+            clock = time.CLOCK_REALTIME
+        return args[3], absolute, clock
     return None
+
+
+def _timed_deadline(
+    waits: dict[_K, tuple[str, float]],
+    key: _K,
+    text: str,
+    mem_fd: int,
+    reread: Callable[[], str | None],
+) -> float | None:
+    """The monotonic deadline of the timed call ``text`` (see :func:`_timed_call`), read
+    from its timespec and confirmed by reading the call again (unchanged: the deadline
+    belongs to it); ``waits[key]`` keeps it per call, so that it stays one value."""
+    call = _timed_call(text)
+    if call is None:
+        return None
+    pointer, absolute, clock = call
+    value = _read_timespec(mem_fd, pointer)
+    if value is None or reread() != text:
+        return None
+    try:
+        now = time.clock_gettime(clock)
+    except OSError:
+        return None
+    mono = time.monotonic()
+    identity = f"{text} {value!r}"
+    seen = waits.get(key)
+    if absolute:
+        if seen is None or seen[0] != identity:  # converted to the monotonic clock once
+            seen = (identity, mono + (value - now))
+            waits[key] = seen
+        return seen[1]
+    # A length: timed from when the call is first seen (at or after its start), and again
+    # from now once that end has passed (the same call site sleeping anew).
+    if seen is None or seen[0] != identity or seen[1] < mono:
+        seen = (identity, mono + value)
+        waits[key] = seen
+    return seen[1]
+
+
+def _own_mem() -> int | None:
+    global _mem_fd
+    if _mem_fd is None:
+        try:
+            _mem_fd = os.open("/proc/self/mem", os.O_RDONLY)
+        except OSError:
+            return None
+    return _mem_fd
+
+
+def _kernel_wait_deadline(thread: threading.Thread) -> float | None:
+    """When ``thread``'s timed system call ends by itself, in ``time.monotonic()`` seconds:
+    ``time.sleep`` (``clock_nanosleep`` with an absolute deadline), ``nanosleep``, and
+    futex waits with a timeout (``Lock.acquire(timeout=...)``, a C library's timed wait).
+    None when unknown."""
+    native_id = thread.native_id
+    kernel = _kernel
+    if kernel is None or native_id is None:
+        return None
+    text = kernel.read(native_id)
+    mem_fd = _own_mem()
+    if text is None or mem_fd is None:
+        return None
+    return _timed_deadline(
+        _kernel_waits, thread.ident or 0, text, mem_fd, lambda: kernel.read(native_id)
+    )
+
+
+#: Per (child pid, thread id): its timed call and deadline, as ``_kernel_waits``.
+_child_waits: dict[tuple[int, int], tuple[str, float]] = {}
+
+
+def child_wait_deadline(pid: int) -> tuple[str, float] | None:
+    """A child process that is asleep, every thread of it blocked, at least one in a timed
+    wait whose end the kernel shows (``time.sleep`` in the child): (an identity of that
+    wait, its monotonic deadline) for the earliest. None when any thread runs, or a timed
+    wait's length cannot be read, or nothing is timed (Linux only; reading another
+    process's memory needs ptrace rights over it, which a parent has by default)."""
+    if _kernel is None:
+        return None
+    base = f"/proc/{pid}"
+    try:
+        tids = sorted(int(name) for name in os.listdir(f"{base}/task"))
+        mem_fd = os.open(f"{base}/mem", os.O_RDONLY)
+    except (OSError, ValueError):
+        return None
+    try:
+        earliest: tuple[str, float] | None = None
+        for tid in tids:
+
+            def read(tid: int = tid) -> str | None:
+                try:
+                    with open(f"{base}/task/{tid}/stat", "rb") as stat:
+                        state = stat.read().rpartition(b")")[2].split()[:1]
+                    if state == [b"R"]:
+                        return "running"
+                    with open(f"{base}/task/{tid}/syscall", "rb") as syscall:
+                        return syscall.read().decode("ascii", "replace")
+                except OSError:
+                    return None
+
+            text = read()
+            if text is None:
+                return None
+            state = _state_from_syscall(text, event_loop=False)
+            if state is ThreadState.RUNNING:
+                return None
+            if state is not ThreadState.TIMED:
+                continue  # parked, or blocked on I/O: not what ends the wait
+            deadline = _timed_deadline(_child_waits, (pid, tid), text, mem_fd, read)
+            if deadline is None:
+                return None
+            if earliest is None or deadline < earliest[1]:
+                earliest = (f"{pid}:{tid}:{_child_waits[(pid, tid)][0]}", deadline)
+        return earliest
+    finally:
+        os.close(mem_fd)
+
+
+def forget_child(pid: int) -> None:
+    """A child is gone: drop what was kept about its waits."""
+    for key in [k for k in _child_waits if k[0] == pid]:
+        del _child_waits[key]
+
+
+# ------------------------------------------ which descriptors a thread waits on (Linux)
+
+#: System calls that wait on descriptors: "poll" (a pollfd array and its length in the first
+#: two arguments) or "fd" (the descriptor is the first argument).
+_FD_WAITS: dict[int, str] = (
+    {7: "poll", 271: "poll", 0: "fd", 19: "fd", 45: "fd", 47: "fd"}
+    if _SYSCALLS is _X86_64
+    else {73: "poll", 63: "fd", 65: "fd", 207: "fd", 212: "fd"}
+)
+_MAX_POLL_FDS = 64
+
+
+def waited_fds(thread: threading.Thread) -> list[int]:
+    """The descriptors ``thread`` is blocked on, if it waits in ``poll``/``ppoll`` (how a
+    socket with a timeout waits) or in a ``read``/``recv`` on one descriptor: from its
+    system call's arguments (and the pollfd array they point to). Empty when unknown."""
+    native_id = thread.native_id
+    kernel = _kernel
+    if kernel is None or native_id is None:
+        return []
+    text = kernel.read(native_id)
+    fields = text.split() if text is not None else []
+    if len(fields) < 7 or fields[0] in ("running", "-1"):
+        return []
+    kind = _FD_WAITS.get(int(fields[0]))
+    args = [int(value, 16) for value in fields[1:3]]
+    if kind == "fd":
+        return [args[0]] if args[0] < 2**31 else []
+    mem_fd = _own_mem()
+    if kind != "poll" or mem_fd is None or not 0 < args[1] <= _MAX_POLL_FDS:
+        return []
+    try:
+        raw = os.pread(mem_fd, 8 * args[1], args[0])  # struct pollfd {int fd; short; short}
+    except (OSError, OverflowError):
+        return []
+    if kernel.read(native_id) != text or len(raw) != 8 * args[1]:
+        return []
+    fds = [
+        int.from_bytes(raw[i : i + 4], sys.byteorder, signed=True) for i in range(0, len(raw), 8)
+    ]
+    return [fd for fd in fds if fd >= 0]
 
 
 def describe_thread(thread: threading.Thread, state: ThreadState) -> str:

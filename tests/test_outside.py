@@ -6,10 +6,13 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import os
+import pathlib
 import queue
 import signal
 import socket
+import ssl
 import subprocess
 import sys
 import threading
@@ -91,6 +94,86 @@ def test_anyio_run_process_and_to_process() -> None:
     assert evclock.run(main()) == (b"out\n", 7, 0.0)
 
 
+def test_anyio_close_of_a_child_blocked_on_a_full_stdout_pipe() -> None:
+    """anyio's Process.aclose() closes the pipes (the child gets EPIPE) and waits on its
+    protocol's ``exited`` event: that wait holds sim time while the child runs."""
+
+    async def main() -> tuple[int | None, float]:
+        process = await anyio.open_process([PY, "-c", "import sys; sys.stdout.write('x' * 2**20)"])
+        with anyio.fail_after(5):
+            await process.aclose()
+        return process.returncode, sim_time()
+
+    code, at = evclock.run(main())
+    assert code not in (0, None)  # it died of the closed pipe
+    assert at == 0.0
+
+
+GRANDCHILD = (
+    "import subprocess, sys; subprocess.Popen([sys.executable, '-c', "
+    "'import select, sys; select.select([sys.stdin], [], [], 10)'])"
+)
+
+
+def test_output_held_open_by_a_grandchild_holds_sim_time_after_the_child_exited() -> None:
+    """The child exits at once; its child (inheriting stdin and stdout) lives until stdin
+    closes. asyncio's wait() returns once the child exited and its pipes closed: it holds
+    sim time until then, also after the child's exit, so no 5 s timeout fires."""
+
+    async def main() -> tuple[int, bytes, float]:
+        proc = await asyncio.create_subprocess_exec(
+            PY, "-c", GRANDCHILD,
+            stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE,
+        )  # fmt: skip
+        assert proc.stdin is not None
+        assert proc.stdout is not None
+        await asyncio.sleep(0)
+        proc.stdin.close()  # the grandchild sees EOF, exits, and so closes stdout
+        code = await asyncio.wait_for(proc.wait(), 5)
+        rest = await asyncio.wait_for(proc.stdout.read(), 3)
+        return code, rest, sim_time()
+
+    assert evclock.run(main()) == (0, b"", 0.0)
+
+
+def test_anyio_wait_returns_on_exit_while_a_grandchild_keeps_stdout_open() -> None:
+    async def main() -> tuple[int, float]:
+        process = await anyio.open_process([PY, "-c", GRANDCHILD])
+        assert process.stdin is not None
+        assert process.stdout is not None
+        async with process.stdin:
+            with anyio.fail_after(5):
+                code = await process.wait()
+        with anyio.fail_after(3, shield=True):
+            async for _ in process.stdout:
+                pass
+        await process.aclose()
+        return code, sim_time()
+
+    assert evclock.run(main()) == (0, 0.0)
+
+
+def test_a_child_asleep_in_a_timed_wait_is_an_event_in_sim_time() -> None:
+    """anyio's to_process test_cancel_during: the worker process sleeps 5 s (time.sleep,
+    whose end the kernel shows) while a task waits on its reply; a 0.1 s sim sleep ends
+    first, as on stock asyncio, and cancelling the call kills the worker."""
+
+    async def main() -> tuple[float, float, bool]:
+        first_pid = await anyio.to_process.run_sync(os.getpid)
+        async with anyio.create_task_group() as tg:
+            tg.start_soon(
+                functools.partial(anyio.to_process.run_sync, cancellable=True), time.sleep, 5
+            )
+            await asyncio.sleep(0.1)  # ends while the worker still sleeps
+            slept_until = sim_time()
+            tg.cancel_scope.cancel()
+        cancelled_at = sim_time()
+        second_pid = await anyio.to_process.run_sync(os.getpid)
+        return slept_until, cancelled_at, second_pid != first_pid
+
+    assert evclock.run(main()) == (0.1, 0.1, True)
+
+
 # ------------------------------------------------------------------------ signals
 
 
@@ -170,6 +253,136 @@ def test_a_long_timed_wait_lets_earlier_sim_timers_fire_first() -> None:
         return woke, at
 
     assert evclock.run(main()) == ([True], 0.1)
+
+
+@pytest.mark.parametrize("wait", ["event", "time_sleep", "lock_timeout"])
+def test_a_timed_wait_is_an_event_in_sim_time_that_earlier_timers_cannot_pass(wait: str) -> None:
+    """A thread's timed wait of remaining wall length L, first seen at sim time t, ends at
+    sim t + L: a series of earlier sim timers runs up to it, never past it (sim time then
+    holds until the thread acts). Event.wait is timed from its frame; time.sleep and
+    Lock.acquire(timeout=...) from the deadline the kernel shows (Linux)."""
+
+    async def main() -> tuple[float, int]:
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[float] = loop.create_future()
+        ticks = 0
+
+        def worker() -> None:
+            if wait == "event":
+                threading.Event().wait(1)
+            elif wait == "time_sleep":
+                time.sleep(1)
+            else:
+                lock = threading.Lock()
+                lock.acquire()
+                lock.acquire(timeout=1)
+            loop.call_soon_threadsafe(lambda: fut.set_result(loop.time()))
+
+        async def ticker() -> None:
+            nonlocal ticks
+            while True:
+                await asyncio.sleep(0.1)
+                ticks += 1
+
+        thread = threading.Thread(target=worker)
+        thread.start()
+        task = asyncio.create_task(ticker())
+        delivered_at = await asyncio.wait_for(fut, 30)
+        task.cancel()
+        await asyncio.to_thread(thread.join, 10)
+        return delivered_at, ticks
+
+    delivered_at, ticks = evclock.run(main())
+    if wait == "event":  # timed from when it is first seen: exactly 1 s of sim time
+        assert (delivered_at, ticks) == (0.9, 9)
+    else:  # from the kernel's deadline: what was left of 1 s when first seen
+        assert 0.5 <= delivered_at <= 0.9
+        assert ticks == round(delivered_at * 10)
+
+
+def test_a_peer_thread_in_time_sleep_lets_a_short_sim_timeout_fire_first() -> None:
+    """anyio's test_receive_timeout: the peer sleeps 1 s before closing; a 0.1 s timeout on
+    the read fires first, as on stock asyncio; the close then arrives while time holds."""
+
+    async def main() -> tuple[float, bytes, float]:
+        server = socket.create_server(("127.0.0.1", 0))
+
+        def serve() -> None:
+            conn, _ = server.accept()
+            time.sleep(1)
+            conn.close()
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        reader, writer = await asyncio.open_connection(*server.getsockname()[:2])
+        with pytest.raises(TimeoutError):
+            await asyncio.wait_for(reader.read(1), 0.1)
+        timed_out_at = sim_time()
+        rest = await asyncio.wait_for(reader.read(1), 5)  # EOF once the thread closes
+        writer.close()
+        await asyncio.to_thread(thread.join, 10)
+        server.close()
+        return timed_out_at, rest, sim_time()
+
+    assert evclock.run(main()) == (0.1, b"", 0.1)
+
+
+def _self_signed(tmp_path: pathlib.Path) -> tuple[str, str]:
+    cert, key = str(tmp_path / "cert.pem"), str(tmp_path / "key.pem")
+    subprocess.run(
+        ["openssl", "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", key,
+         "-out", cert, "-days", "1", "-subj", "/CN=localhost"],
+        check=True, capture_output=True, timeout=60,
+    )  # fmt: skip
+    return cert, key
+
+
+def test_a_tls_peer_thread_on_a_blocking_socket_gives_no_false_timeout(
+    tmp_path: pathlib.Path,
+) -> None:
+    """test_ssl's threaded TLS server: its small records (session tickets, then b"O")
+    can wait in its socket for the loop's ACK (Nagle) while the thread already blocks in
+    recv; those unsent bytes are in flight, so no 30 s timeout fires in sim time."""
+    cert, key = _self_signed(tmp_path)
+    server_ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    server_ctx.load_cert_chain(cert, key)
+    client_ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    client_ctx.load_verify_locations(cert)
+    hello = b"1" * 1000
+
+    async def main() -> list[object]:
+        server = socket.create_server(("127.0.0.1", 0))
+        got: list[object] = []
+
+        def serve() -> None:
+            conn, _ = server.accept()
+            conn.settimeout(20)  # a safety bound: it waits in poll(), like test_ssl's
+            tls = server_ctx.wrap_socket(conn, server_side=True)
+            tls.sendall(b"O")
+            data = b""
+            while len(data) < len(hello):
+                data += tls.recv(len(hello) - len(data))
+            got.append(len(data))
+            tls.unwrap()
+            tls.close()
+
+        thread = threading.Thread(target=serve, daemon=True)
+        thread.start()
+        loop = asyncio.get_running_loop()
+        port = server.getsockname()[1]
+        reader, writer = await asyncio.wait_for(
+            asyncio.open_connection("127.0.0.1", port, ssl=client_ctx, server_hostname="localhost"),
+            30,
+        )
+        got.append(await asyncio.wait_for(reader.readexactly(1), 30))
+        writer.write(hello)
+        got.append(await asyncio.wait_for(reader.read(), 30))  # the peer's close_notify
+        writer.close()
+        await asyncio.to_thread(thread.join, 20)
+        server.close()
+        return [*got, loop.time()]
+
+    assert evclock.run(main()) == [b"O", 1000, b"", 0.0]
 
 
 @pytest.mark.parametrize("blocker", ["lock", "simple_queue"])
@@ -354,6 +567,47 @@ def test_selector_as_first_positional_argument() -> None:
         loop.close()
 
 
+def test_a_paused_loop_whose_only_waker_is_a_signal_handler_waits_for_the_signal() -> None:
+    # No thread, no socket: only SIGUSR1 (sent by a process the loop does not know) can
+    # resume the loop, through its handler. Paused with that handler, the loop waits.
+    async def main() -> tuple[float, bool, list[str]]:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, evclock.SimEventLoop)
+        got: list[str] = []
+
+        def on_signal() -> None:
+            got.append("SIGUSR1")
+            loop.resume()
+
+        loop.add_signal_handler(signal.SIGUSR1, on_signal)
+        kill = f"os.kill({os.getpid()}, {int(signal.SIGUSR1)})"
+        sender = subprocess.Popen([PY, "-c", f"import os, time; time.sleep(0.3); {kill}"])
+        try:
+            loop.pause()
+            await asyncio.sleep(2)
+        finally:
+            sender.wait(10)
+            loop.remove_signal_handler(signal.SIGUSR1)
+        return loop.time(), loop.paused, got
+
+    assert evclock.run(main()) == (2.0, False, ["SIGUSR1"])
+
+
+def test_a_paused_loop_nothing_can_resume_is_a_deadlock() -> None:
+    async def main() -> None:
+        asyncio.get_running_loop().pause()  # type: ignore[attr-defined]
+        await asyncio.sleep(1)
+
+    with pytest.raises(evclock.DeadlockError) as info:
+        evclock.run(main())
+    assert str(info.value).startswith(
+        "the loop is paused and nothing could ever resume it: no I/O or signal handler is "
+        "registered, no child process runs and no other thread runs; call resume() or step() "
+        "from a task before pausing, or serve a control channel (a socket, a signal handler) "
+        "that can"
+    )
+
+
 # ------------------------------------------------------ controls from another thread
 
 
@@ -466,6 +720,156 @@ def test_a_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
         "step() needs a paused loop, but it is running as fast as possible; "
         "call pause() first, then step"
     )
+
+
+# ------------------------------------------- SimDriver's controls from another thread
+
+
+def _in_thread(action: object) -> concurrent.futures.Future[object]:
+    """Run ``action`` in a new (operator) thread after a moment; its result or error."""
+    result: concurrent.futures.Future[object] = concurrent.futures.Future()
+
+    def operator() -> None:
+        time.sleep(0.05)  # let the driver reach its wait first
+        try:
+            result.set_result(action())  # type: ignore[operator]
+        except BaseException as exc:
+            result.set_exception(exc)
+
+    threading.Thread(target=operator, daemon=True).start()
+    return result
+
+
+async def _outcome(result: concurrent.futures.Future[object]) -> object:
+    return await asyncio.wait_for(asyncio.wrap_future(result), 10)
+
+
+def test_driver_step_resume_and_rtf_from_another_thread_wake_it() -> None:
+    # A plain asyncio loop sleeps in epoll while the paused driver waits: only the control's
+    # hand-over (call_soon_threadsafe) can wake it. wait_for is wall time here (a bound).
+    async def main() -> list[object]:
+        seen: list[object] = []
+        async with evclock.SimDriver(rtf=None, paused=True) as sim:
+            op = _in_thread(sim.step)
+            await asyncio.wait_for(sim.clock.sleep(3), 10)  # one step: a jump to 3 s
+            seen += [sim.now_ns, await _outcome(op), sim.paused]
+            op = _in_thread(sim.resume)
+            await asyncio.wait_for(sim.clock.sleep(4), 10)
+            seen += [sim.now_ns, sim.paused]
+
+            def slow() -> None:
+                sim.rtf = 0.001  # from the operator thread: a very long pacing wait
+
+            await _outcome(_in_thread(slow))
+
+            def full_speed() -> None:
+                sim.rtf = None
+
+            op = _in_thread(full_speed)
+            await asyncio.wait_for(sim.clock.sleep(3600), 10)  # 3.6e6 wall s at rtf=0.001
+            seen += [sim.now_ns, sim.rtf]
+            await _outcome(op)
+        return seen
+
+    assert asyncio.run(main()) == [3 * 10**9, None, True, 7 * 10**9, False, 3607 * 10**9, None]
+
+
+def test_driver_pause_and_step_until_from_another_thread_stop_exactly() -> None:
+    async def main() -> list[object]:
+        seen: list[object] = []
+        async with evclock.SimDriver(rtf=None) as sim:
+            ticks: list[int] = []
+
+            async def controller() -> None:
+                async for tick in sim.clock.rate(10):
+                    ticks.append(tick.index)
+
+            task = asyncio.create_task(controller())
+            await asyncio.wait_for(sim.run_until(1.0), 10)
+            await _outcome(_in_thread(sim.pause))
+            paused_at = sim.now_ns
+            for _ in range(50):  # paused: time stands still
+                await asyncio.sleep(0.001)
+            seen += [sim.paused, sim.now_ns == paused_at]
+            target = evclock.Time(seconds=paused_at / 1e9 + 2.55)
+            await _outcome(_in_thread(lambda: sim.step_until(target)))
+            while sim.now_ns < target.nanoseconds:
+                await asyncio.wait_for(sim.clock.sleep(0.05), 10)
+            for _ in range(50):
+                await asyncio.sleep(0.001)
+            seen += [sim.now_ns - paused_at, sim.paused]
+            task.cancel()
+        return seen
+
+    assert asyncio.run(main()) == [True, True, 2_550_000_000, True]
+
+
+def test_driver_control_that_does_not_apply_raises_in_the_calling_thread() -> None:
+    async def main() -> str:
+        async with evclock.SimDriver(rtf=None) as sim:
+            with pytest.raises(evclock.PacingError) as info:
+                await _outcome(_in_thread(sim.step))  # not paused
+            return str(info.value)
+
+    assert asyncio.run(main()) == (
+        "step() needs a paused loop, but it is running as fast as possible; "
+        "call pause() first, then step"
+    )
+
+
+def test_driver_hold_time_from_another_thread_holds_and_wakes_it() -> None:
+    async def main() -> list[object]:
+        async with evclock.SimDriver(rtf=None) as sim:
+            entered = threading.Event()
+            leave = threading.Event()
+
+            def worker() -> None:
+                with sim.hold_time():
+                    entered.set()
+                    leave.wait(10)
+
+            thread = threading.Thread(target=worker)
+            thread.start()
+            assert await asyncio.to_thread(entered.wait, 10)
+            before = sim.now_ns
+            sleeper = asyncio.ensure_future(sim.clock.sleep(5))
+            for _ in range(50):
+                await asyncio.sleep(0.001)
+            held = [sim.now_ns == before, sleeper.done()]
+            leave.set()
+            await asyncio.wait_for(sleeper, 10)
+            await asyncio.to_thread(thread.join, 10)
+            return [*held, sim.now_ns - before]
+
+    assert asyncio.run(main()) == [True, False, 5 * 10**9]
+
+
+def test_driver_waits_from_another_thread_raise_wrong_thread_error() -> None:
+    async def main() -> list[str]:
+        async with evclock.SimDriver(rtf=None) as sim:
+
+            def elsewhere() -> list[str]:
+                messages = []
+                for coro in (sim.run_until(1.0), sim.stop()):
+                    with pytest.raises(evclock.WrongThreadError) as info:
+                        asyncio.run(coro)
+                    messages.append(str(info.value))
+                return messages
+
+            messages = await asyncio.to_thread(elsewhere)
+        return messages
+
+    assert asyncio.run(main()) == [
+        "SimDriver.run_until(t) must be awaited on the event loop the driver runs on, but it "
+        "was called from another thread (or loop); hand it to the driver's loop with "
+        "asyncio.run_coroutine_threadsafe(sim.run_until(t), sim.loop).result(timeout), or "
+        "call the thread-safe controls (pause(), resume(), step(), step_until(), rtf) directly",
+        "SimDriver.stop() must be awaited on the event loop the driver runs on, but it was "
+        "called from another thread (or loop); hand it to the driver's loop with "
+        "asyncio.run_coroutine_threadsafe(sim.stop(), sim.loop).result(timeout), or call "
+        "the thread-safe controls (pause(), resume(), step(), step_until(), rtf) directly",
+    ]
+    assert issubclass(evclock.WrongThreadError, evclock.NotRunningError)
 
 
 def test_outside_world_example_prints_exact_sim_times() -> None:
