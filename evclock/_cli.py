@@ -26,7 +26,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
 from ._diagnostics import render_diagnostics_report
-from ._errors import EvClockError, InvalidArgumentError
+from ._errors import EvClockError, InvalidArgumentError, MissingExtraError
 from ._runs import RunReport, parse_rtf, run_scenario
 from ._scenarios import ParamValue, load_scenario, parse_param_values, registered_scenarios
 from .ros2 import _cli as ros2_cli
@@ -174,20 +174,58 @@ def exit_code(report: RunReport) -> int:
 
 @app.command("list")
 def list_scenarios() -> None:
-    """List the registered scenarios (entry-point group evclock.scenarios)."""
+    """List the registered scenarios (entry-point group evclock.scenarios).
+
+    A scenario whose extra is not installed is listed with what it needs, and a note on stderr
+    gives the command that installs it (exit 0: nothing is broken). A registration that cannot
+    be imported for another reason is listed as broken, its error printed, and the exit status
+    is 2; every other scenario is still listed.
+    """
     table = Table(title="scenarios")
     table.add_column("name")
     table.add_column("sim seconds", justify="right")
     table.add_column("description")
     table.add_column("from")
     try:
-        for entry in registered_scenarios():
-            cls = entry.load()
-            table.add_row(entry.name, f"{cls.default_until:g}", cls.description, entry.distribution)
+        entries = registered_scenarios()
     except EvClockError as exc:
         print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
+    missing: dict[str, list[str]] = {}  # error message -> scenario names (insertion order)
+    broken: list[str] = []
+    for entry in entries:
+        try:
+            cls = entry.load()
+        except MissingExtraError as exc:
+            need = f"evclock[{exc.extra}]" if exc.extra else "an optional dependency"
+            table.add_row(
+                escape(entry.name), "-", escape(f"(needs {need})"), escape(entry.distribution)
+            )
+            missing.setdefault(str(exc), []).append(entry.name)
+        except Exception as exc:  # a third-party registration must not hide the others
+            table.add_row(
+                escape(entry.name), "-", "(broken: see the error below)", escape(entry.distribution)
+            )
+            detail = str(exc) if isinstance(exc, EvClockError) else f"{type(exc).__name__}: {exc}"
+            broken.append(f"scenario {entry.name!r} ({entry.target}) cannot be loaded: {detail}")
+        else:
+            table.add_row(
+                escape(entry.name),
+                f"{cls.default_until:g}",
+                escape(str(cls.description)),
+                escape(entry.distribution),
+            )
     Console().print(table)
+    stderr = Console(stderr=True)
+    for message, names in missing.items():
+        stderr.print(
+            f"[yellow]note:[/yellow] {escape(', '.join(names))} cannot run here: {escape(message)}",
+            soft_wrap=True,
+        )
+    for message in broken:
+        stderr.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
+    if broken:
+        raise typer.Exit(EXIT_USAGE)
 
 
 def progress_bar(console: Console, quiet: bool) -> Progress:
@@ -265,6 +303,10 @@ def run_command(
         if ros2 is not None:
             if serve is not None:
                 raise InvalidArgumentError("--ros2-clock with --serve is not supported; pick one")
+            from .ros2._session import require
+
+            for module in ("zenoh", "xxhash"):  # the ros2 extra: fail before any run
+                require(module)
             console.print(ros2.describe(), soft_wrap=True)
         if wall and pace is not None:
             raise InvalidArgumentError("--wall runs in real time: drop --rtf (or use --rtf max)")

@@ -105,6 +105,9 @@ class MissingExtraError(EvClockError, ImportError):
     """An optional dependency is not installed; the message names the extra that installs it
     (``pip install 'evclock[pybullet]'``)."""
 
+    extra: str | None = None
+    """The extra that installs the missing module (``"pybullet"``), when known."""
+
 
 class TraceError(EvClockError, ValueError):
     """A recorded trace (MCAP file) cannot be read, or is not an evclock recording."""

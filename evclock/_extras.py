@@ -7,6 +7,31 @@ from types import ModuleType
 
 from ._errors import MissingExtraError
 
+#: The extra that installs each optional top-level module evclock or its scenarios import.
+EXTRA_OF_MODULE = {
+    "pybullet": "pybullet",
+    "pybullet_data": "pybullet",
+    "starlette": "dashboard",
+    "uvicorn": "dashboard",
+    "PIL": "dashboard",
+    "mcap": "record",
+    "matplotlib": "plot",
+    "ray": "ray",
+    "zenoh": "ros2",
+    "xxhash": "ros2",
+}
+
+
+def missing_extra(module: str, extra: str, *, needed_by: str) -> MissingExtraError:
+    """The error saying ``needed_by`` needs ``module``, which ``evclock[extra]`` installs."""
+    error = MissingExtraError(
+        f"{needed_by} needs {module!r}, which is not installed; install it with: "
+        f"pip install 'evclock[{extra}]'",
+        name=module,
+    )
+    error.extra = extra
+    return error
+
 
 def import_extra(module: str, extra: str, *, needed_by: str) -> ModuleType:
     """Import ``module``, which the ``evclock[extra]`` extra installs.
@@ -20,8 +45,12 @@ def import_extra(module: str, extra: str, *, needed_by: str) -> ModuleType:
     except ModuleNotFoundError as exc:
         if exc.name != module.partition(".")[0]:
             raise  # the package is there but something it imports is not: not ours to explain
-        raise MissingExtraError(
-            f"{needed_by} needs {module!r}, which is not installed; install it with: "
-            f"pip install 'evclock[{extra}]'",
-            name=module,
-        ) from exc
+        raise missing_extra(module, extra, needed_by=needed_by) from exc
+
+
+def extra_for(exc: ModuleNotFoundError, *, needed_by: str) -> MissingExtraError | None:
+    """``exc`` (raised while importing user code) as a :class:`MissingExtraError` when the
+    missing module is one an evclock extra installs (``pybullet``), else ``None``."""
+    top = (exc.name or "").partition(".")[0]
+    extra = EXTRA_OF_MODULE.get(top)
+    return None if extra is None else missing_extra(top, extra, needed_by=needed_by)

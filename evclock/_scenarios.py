@@ -22,7 +22,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from ._errors import InvalidArgumentError, InvalidTypeError, ScenarioError
+from ._errors import EvClockError, InvalidArgumentError, InvalidTypeError, ScenarioError
+from ._extras import extra_for
 
 ENTRY_POINT_GROUP = "evclock.scenarios"
 """The entry-point group packages register their scenario classes in."""
@@ -95,10 +96,25 @@ def _module_from_file(path: Path) -> Any:
     sys.modules[module_name] = module
     try:
         spec.loader.exec_module(module)
+    except ModuleNotFoundError as exc:
+        del sys.modules[module_name]
+        raise _missing_module(exc, f"scenario file {str(path)!r}") from exc
     except BaseException:
         del sys.modules[module_name]
         raise
     return module
+
+
+def _missing_module(exc: ModuleNotFoundError, what: str) -> EvClockError:
+    """The error for a module ``what`` imports that is not installed: the extra that installs
+    it (``pybullet``) or, for a module no extra provides, its name."""
+    known = extra_for(exc, needed_by=what)
+    if known is not None:
+        return known
+    return ScenarioError(
+        f"{what} imports {exc.name!r}, which is not installed ({exc}); install it, or fix the "
+        "import"
+    )
 
 
 def _scenario_classes_in(module: Any) -> list[type[Any]]:
@@ -161,6 +177,10 @@ def load_scenario(spec: str, *, what: str | None = None) -> type[Any]:
         try:
             module = importlib.import_module(module_name)
         except ModuleNotFoundError as exc:
+            missing = exc.name or ""
+            if missing and module_name != missing and not module_name.startswith(missing + "."):
+                # The module is there; something it imports is not.
+                raise _missing_module(exc, label) from exc
             raise ScenarioError(
                 f"cannot import {module_name!r} for {label}: {exc}; is the package installed "
                 "(or on PYTHONPATH)?"

@@ -21,8 +21,8 @@ from evclock._extras import import_extra
 
 # The first scenario module imported (every other one imports this one): a missing PyBullet
 # fails here, naming the extra that installs it.
-p = import_extra("pybullet", "pybullet", needed_by="the bundled scenarios (evclock_sims)")
-pybullet_data = import_extra("pybullet_data", "pybullet", needed_by="the bundled scenarios")
+p = import_extra("pybullet", "pybullet", needed_by="evclock_sims (the bundled scenarios)")
+pybullet_data = import_extra("pybullet_data", "pybullet", needed_by="evclock_sims")
 
 PHYSICS_HZ = 240
 """Physics rate of every scenario: one ``stepSimulation`` per 1/240 s of simulated time."""

@@ -4,9 +4,11 @@ package is made unimportable (``sys.modules[name] = None``)."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import pytest
 
@@ -112,5 +114,215 @@ def test_evclock_run_without_pybullet_exits_2_naming_the_extra() -> None:
     )
     assert result.returncode == 2, result.stderr
     message = " ".join(result.stderr.split())  # evclock's errors go to stderr
-    assert "error: the bundled scenarios (evclock_sims) needs 'pybullet', which is not " in message
+    assert "error: evclock_sims (the bundled scenarios) needs 'pybullet', which is not " in message
     assert "pip install 'evclock[pybullet]'" in message
+
+
+# --- the `evclock` command without its extras: a one-line error (or, for `list`, a note), never
+# a traceback. Each case hides the extra's module in a fresh interpreter.
+
+#: A scenario that needs no extra (a duck-typed class: evclock_sims itself needs PyBullet).
+_LIGHT = """
+class Light:
+    name = "light"
+    description = "no physics [a test scenario]"
+    default_until = 1.5
+    async def run(self, clock): ...
+    def success(self): return True
+    def summary(self): return {}
+    def state_vector(self): return []
+"""
+
+#: A scenario module that imports PyBullet itself before anything of evclock's.
+_NEEDS_PYBULLET = """
+import pybullet as p
+from evclock_sims import Scenario
+
+class Reach(Scenario):
+    name = "reach"
+    description = "imports pybullet first"
+    default_until = 1.0
+    def _services(self, clock): return {}
+    async def _mission(self, clock): ...
+    def success(self): return True
+    def _metrics(self): return {}
+"""
+
+
+def cli(args: list[str], *, hide: tuple[str, ...], cwd: Path) -> subprocess.CompletedProcess[str]:
+    """``evclock ARGS`` in a fresh interpreter where the modules ``hide`` are not installed and
+    ``cwd`` (holding the test's scenario modules and distributions) is on ``sys.path``."""
+    code = f"""
+        import sys
+        for name in {list(hide)!r}:
+            sys.modules[name] = None
+        sys.path.insert(0, {str(cwd)!r})
+        from evclock._cli import main
+        sys.argv = ["evclock", *{args!r}]
+        main()
+        """
+    return subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        capture_output=True,
+        text=True,
+        timeout=_CHILD_TIMEOUT,
+        check=False,
+        cwd=cwd,
+        env={**os.environ, "COLUMNS": "300", "NO_COLOR": "1"},
+    )
+
+
+def one_line(text: str) -> str:
+    return " ".join(text.split())
+
+
+def register(directory: Path, entry_points: dict[str, str]) -> None:
+    """A distribution ``evclock-test-scenarios`` in ``directory`` registering ``entry_points``."""
+    info = directory / "evclock_test_scenarios-1.0.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: evclock-test-scenarios\nVersion: 1.0\n"
+    )
+    lines = "".join(f"{name} = {target}\n" for name, target in entry_points.items())
+    (info / "entry_points.txt").write_text(f"[evclock.scenarios]\n{lines}")
+
+
+@pytest.fixture
+def scenarios(tmp_path: Path) -> Path:
+    (tmp_path / "light_scenario.py").write_text(_LIGHT)
+    (tmp_path / "reach_scenario.py").write_text(_NEEDS_PYBULLET)
+    return tmp_path
+
+
+def test_evclock_list_without_pybullet_lists_every_scenario_and_names_the_extra(
+    scenarios: Path,
+) -> None:
+    register(scenarios, {"light": "light_scenario:Light", "reach": "reach_scenario:Reach"})
+    result = cli(["list"], hide=("pybullet",), cwd=scenarios)
+    assert result.returncode == 0, result.stderr
+    assert "Traceback" not in result.stderr
+    rows = {line.split()[1]: one_line(line) for line in result.stdout.splitlines() if "│" in line}
+    # What can be loaded is listed in full; the others with what they need.
+    assert rows["light"] == (
+        "│ light │ 1.5 │ no physics [a test scenario] │ evclock-test-scenarios │"
+    )
+    for name in ("cartpole", "fusion", "husky", "kuka"):
+        assert rows[name] == f"│ {name} │ - │ (needs evclock[pybullet]) │ evclock │"
+    assert rows["reach"] == "│ reach │ - │ (needs evclock[pybullet]) │ evclock-test-scenarios │"
+    assert one_line(result.stderr) == (
+        "note: cartpole, fusion, husky, kuka cannot run here: evclock_sims (the bundled "
+        "scenarios) needs 'pybullet', which is not installed; install it with: pip install "
+        "'evclock[pybullet]' "
+        "note: reach cannot run here: scenario 'reach' (evclock-test-scenarios) needs "
+        "'pybullet', which is not installed; install it with: pip install 'evclock[pybullet]'"
+    )
+
+
+def test_evclock_list_reports_a_broken_registration_and_lists_the_others(
+    scenarios: Path,
+) -> None:
+    (scenarios / "raising_scenario.py").write_text("raise RuntimeError('boom at import')\n")
+    register(
+        scenarios,
+        {
+            "light": "light_scenario:Light",
+            "gone": "no_such_scenario_module:Gone",
+            "raising": "raising_scenario:X",
+        },
+    )
+    result = cli(["list"], hide=("pybullet",), cwd=scenarios)
+    assert result.returncode == 2, result.stderr
+    assert "Traceback" not in result.stderr
+    stdout = one_line(result.stdout)
+    assert "│ light │ 1.5 │ no physics [a test scenario] │ evclock-test-scenarios │" in stdout
+    assert "│ gone │ - │ (broken: see the error below) │ evclock-test-scenarios │" in stdout
+    assert "│ kuka │ - │ (needs evclock[pybullet]) │ evclock │" in stdout
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert errors == [
+        "error: scenario 'gone' (no_such_scenario_module:Gone) cannot be loaded: cannot import "
+        "'no_such_scenario_module' for scenario 'gone' (evclock-test-scenarios): No module "
+        "named 'no_such_scenario_module'; is the package installed (or on PYTHONPATH)?",
+        "error: scenario 'raising' (raising_scenario:X) cannot be loaded: RuntimeError: boom "
+        "at import",
+    ]
+
+
+_PYBULLET_ERROR = (
+    "needs 'pybullet', which is not installed; install it with: pip install 'evclock[pybullet]'"
+)
+_BUNDLED = f"error: evclock_sims (the bundled scenarios) {_PYBULLET_ERROR}"
+
+
+@pytest.mark.parametrize(
+    ("hide", "args", "error"),
+    [
+        (("pybullet",), ["run", "kuka", "--quiet"], _BUNDLED),
+        (
+            ("pybullet",),
+            ["run", "reach_scenario.py"],
+            f"error: scenario file 'reach_scenario.py' {_PYBULLET_ERROR}",
+        ),
+        (
+            ("pybullet",),
+            ["run", "reach_scenario:Reach"],
+            f"error: 'reach_scenario:Reach' {_PYBULLET_ERROR}",
+        ),
+        (("pybullet",), ["sweep", "kuka", "--seeds", "2", "--quiet"], _BUNDLED),
+        (
+            ("pybullet",),
+            ["sweep", "reach_scenario.py:Reach", "--seeds", "2", "--quiet"],
+            "error: scenario file '{cwd}/reach_scenario.py' " + _PYBULLET_ERROR,
+        ),
+        (("pybullet",), ["control", "kuka", "--clock", "tcp://127.0.0.1:9"], _BUNDLED),
+        (
+            ("pybullet",),
+            ["control", "light_scenario:Light", "--clock", "tcp://127.0.0.1:9"],
+            f"error: evclock control {_PYBULLET_ERROR}",
+        ),
+        (
+            ("mcap",),
+            ["run", "light_scenario.py:Light", "--record", "out.mcap"],
+            "error: recording needs the mcap package: pip install 'evclock[record]'",
+        ),
+        (
+            ("mcap",),
+            ["trace", "diff", "a.mcap", "b.mcap"],
+            "error: reading recordings needs the mcap package: pip install 'evclock[record]'",
+        ),
+        (
+            ("mcap",),
+            ["plot", "a.mcap", "-o", "out.png"],
+            "error: reading recordings needs the mcap package: pip install 'evclock[record]'",
+        ),
+        (
+            ("matplotlib",),
+            ["plot", "a.mcap", "-o", "out.png"],
+            "error: plots need matplotlib: pip install 'evclock[plot]'",
+        ),
+        (
+            ("matplotlib",),
+            ["sweep", "light_scenario.py:Light", "--plot", "out.png"],
+            "error: plots need matplotlib: pip install 'evclock[plot]'",
+        ),
+        (
+            ("ray",),
+            ["sweep", "light_scenario.py:Light", "--backend", "ray", "--quiet"],
+            "error: the ray backend needs Ray: pip install 'evclock[ray]'",
+        ),
+        (
+            ("zenoh",),
+            ["run", "light_scenario.py:Light", "--ros2-clock", "--quiet"],
+            "error: evclock's ROS 2 support needs the 'ros2' extra (module 'zenoh' is "
+            "missing): pip install 'evclock[ros2]'",
+        ),
+    ],
+)
+def test_a_command_without_its_extra_prints_one_error_line_and_exits_2(
+    scenarios: Path, hide: tuple[str, ...], args: list[str], error: str
+) -> None:
+    for name in ("a.mcap", "b.mcap"):
+        (scenarios / name).write_bytes(b"")
+    result = cli(args, hide=hide, cwd=scenarios)
+    assert result.returncode == 2, result.stderr
+    assert one_line(result.stderr).endswith(one_line(error.format(cwd=scenarios))), result.stderr
+    assert "Traceback" not in result.stderr

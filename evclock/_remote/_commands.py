@@ -22,6 +22,7 @@ import typer
 
 from .._clock import clock
 from .._errors import EvClockError, InvalidArgumentError
+from .._extras import import_extra
 from .._loop import SimEventLoop
 from .._runner import run as evclock_run
 from ._participant import participant
@@ -145,11 +146,10 @@ def control_scenario(
     name: str, *, clock_url: str, seed: int = 0, until: float | None = None
 ) -> RunReport:
     """Run scenario ``name``'s controllers against the simulation served at ``clock_url``."""
-    import pybullet as p
-
     from .._runs import RunReport, _loop_reports, scenario_class
 
     cls = scenario_class(name, {})
+    p = import_extra("pybullet", "pybullet", needed_by="evclock control")
     limit = _limit(cls, until)
     local = p.connect(p.DIRECT)  # a private copy of the world: builds the scenario object only
     try:
