@@ -7,6 +7,8 @@ entry point of the installed package, next to pytest-asyncio's and anyio's plugi
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 pytest_plugins = ["pytester"]
@@ -85,6 +87,84 @@ def test_a_project_using_the_plugin_sees_no_warning(pytester: pytest.Pytester) -
     )
     result.assert_outcomes(passed=1, warnings=0)
     assert "warnings summary" not in result.stdout.str()
+
+
+#: A user project that has pytest-asyncio: plain pytest-asyncio tests, and evclock tests run by
+#: evclock itself and by pytest-asyncio (with evclock's loop).
+_WITH_PYTEST_ASYNCIO = {
+    "test_plain": """
+        import asyncio
+        import pytest
+        import pytest_asyncio
+
+        @pytest_asyncio.fixture
+        async def ready():
+            await asyncio.sleep(0)
+            return True
+
+        @pytest.mark.asyncio
+        async def test_plain(ready):
+            assert ready
+        """,
+    "test_evclock": """
+        import asyncio
+        import pytest
+
+        @pytest.mark.evclock
+        async def test_on_evclocks_runner(evclock_clock):
+            await asyncio.sleep(60)
+            assert evclock_clock.now().seconds == 60
+
+        @pytest.mark.asyncio
+        @pytest.mark.evclock
+        async def test_on_pytest_asyncio(evclock_clock):
+            await asyncio.sleep(60)
+            assert evclock_clock.now().seconds == 60
+        """,
+}
+_QUIET = ("-p", "no:cacheprovider", "-p", "no:anyio", "-p", "no:hypothesispytest")
+_UNSET_WARNING = 'The configuration option "asyncio_default_fixture_loop_scope" is unset.'
+
+
+def warnings_shown(result: pytest.RunResult) -> str:
+    """Every warning the run showed: its warnings summary (empty when there is none) and what
+    it wrote to stderr (where a warning raised while pytest configures itself goes)."""
+    lines = result.stdout.lines
+    starts = [i for i, line in enumerate(lines) if "warnings summary" in line]
+    summary: list[str] = []
+    if starts:
+        section = lines[starts[0] + 1 :]
+        summary = section[: next(i for i, line in enumerate(section) if line.startswith("-- "))]
+    return "\n".join([*summary, *result.stderr.lines]).strip()
+
+
+def test_a_project_with_pytest_asyncio_and_its_ini_line_sees_no_warning(
+    pytester: pytest.Pytester,
+) -> None:
+    pytester.makeini("[pytest]\nasyncio_default_fixture_loop_scope = function\n")
+    pytester.makepyfile(**_WITH_PYTEST_ASYNCIO)
+    result = pytester.runpytest_subprocess(*_QUIET)
+    result.assert_outcomes(passed=3, warnings=0)
+    assert warnings_shown(result) == ""
+
+
+def test_without_the_ini_line_the_only_warning_is_pytest_asyncios_own(
+    pytester: pytest.Pytester,
+) -> None:
+    """pytest-asyncio warns (on stderr, while pytest configures itself) until a project sets
+    its option, with or without evclock: evclock adds no warning and causes none - the output
+    is the same without evclock's plugin."""
+    pytester.makeini("[pytest]\n")
+    pytester.makepyfile(**_WITH_PYTEST_ASYNCIO)
+    with_evclock = pytester.runpytest_subprocess(*_QUIET)
+    with_evclock.assert_outcomes(passed=3)
+    without_evclock = pytester.runpytest_subprocess(*_QUIET, "-p", "no:evclock", "test_plain.py")
+    without_evclock.assert_outcomes(passed=1)
+    shown = warnings_shown(with_evclock)
+    assert shown == warnings_shown(without_evclock)
+    first = re.escape(f": PytestDeprecationWarning: {_UNSET_WARNING}")
+    assert re.fullmatch(rf".*pytest_asyncio[/\\]plugin\.py:\d+{first}", shown.splitlines()[0])
+    assert "evclock" not in shown
 
 
 @pytest.mark.parametrize(
