@@ -5,6 +5,10 @@ PyBullet publishes wheels for CPython 3.11 only, so the ``test`` extra installs 
 nowhere else. Tests that need it are skipped where it is missing - whole modules through
 ``pytest.importorskip("pybullet")``, single tests through ``@pytest.mark.pybullet`` - and a
 missing PyBullet on 3.11 is an error, so that the full suite can never skip them silently.
+
+A failure is also written out when it happens, not only in the end-of-session summary: a hang
+later in the session ends it at once (pytest-timeout's thread method dumps the stacks and
+exits), and the failures before it would otherwise be lost with the summary.
 """
 
 from __future__ import annotations
@@ -45,3 +49,24 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.get_closest_marker("pybullet") is not None:
             item.add_marker(skip)
+
+
+def pytest_runtest_logreport(report: pytest.TestReport) -> None:
+    if not report.failed:
+        return
+    terminal = _terminal
+    if terminal is None:
+        return
+    terminal.write_line("")
+    terminal.write_sep("!", f"FAILED ({report.when}) {report.nodeid}", red=True)
+    terminal.write_line(report.longreprtext)
+    terminal.write_sep("!", "end of failure (the summary repeats it)", red=True)
+
+
+_terminal: pytest.TerminalReporter | None = None
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_sessionstart(session: pytest.Session) -> None:
+    global _terminal
+    _terminal = session.config.pluginmanager.get_plugin("terminalreporter")
