@@ -193,6 +193,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         )
         #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
+        # EXTERNAL-SOURCE HOOK: the loop just waited for the source (skip one zero poll);
+        # whether the source is external (it may name its fd: TimeSource.io_fd).
+        self._source_polled = False
+        self._source_external = source.external
         self._sim_clock: SimClock | None = None
 
     # ----------------------------------------------------------------- time
@@ -306,7 +310,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         while True:
             io_registered = len(io_map) > self._quiet_fds  # OUTSIDE HOOK: signals too
             if io_registered:
-                self._poll_io(0)  # what arrives is handled at the current sim time
+                if self._source_polled:  # EXTERNAL-SOURCE HOOK: see _wait_source
+                    self._source_polled = False
+                elif not self._source_alone():
+                    self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
                 # The short path when nothing else can matter (no pacing, no I/O, no outside
                 # work, no other thread, not an external source): straight to the next
@@ -383,7 +390,36 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 self._describe_waiting_tasks(),
             )
         else:  # WAIT_SOURCE: an external source waits for its messages (through the loop)
-            self._poll_io(_EXTERNAL_POLL)
+            self._wait_source()
+
+    def _wait_source(self) -> None:
+        """EXTERNAL-SOURCE HOOK: wait for an external source's news (serving all I/O).
+
+        The source's reader runs when its fd is readable; then the kernel is asked again
+        at once: the zero-timeout poll that usually precedes the rule is skipped once
+        after this wait (it just polled), and also whenever the only registered I/O is
+        the source's own fd (``TimeSource.io_fd``), which the source reads when asked.
+        """
+        self._poll_io(_EXTERNAL_POLL)
+        self._source_polled = True
+
+    def _source_alone(self) -> bool:
+        """EXTERNAL-SOURCE HOOK: the only thing outside the loop is an external source's
+        own connection (its ``io_fd`` is the one registered fd besides the quiet self-pipe;
+        no outside work, no other thread). The source reads that fd itself when the kernel
+        asks it to advance and accounts for what is in flight on it, so the loop neither
+        polls it beforehand nor infers held time from its unread bytes."""
+        fd = self._source.io_fd
+        return (
+            fd is not None
+            and len(self._io_map) == self._quiet_fds + 1
+            and fd in self._io_map
+            and not self._outside.active
+            and (
+                len(_thread_registry) + len(_thread_limbo) <= 1
+                or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
+            )
+        )
 
     # ------------------------------------------------ what the kernel asks the loop
 
@@ -399,6 +435,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         first of their ends (the outside model's horizon), as timers and thread timeouts
         race on stock asyncio.
         """
+        if self._source_external and self._source_alone():
+            self._holder = None  # EXTERNAL-SOURCE HOOK: nothing outside but the source
+            return False
         holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
         if holder is None:
             return False

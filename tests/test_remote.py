@@ -625,3 +625,47 @@ def test_loop_factory_joins_a_clock_server(tmp_path: Path) -> None:
         evclock.loop_factory(clock=url, source=evclock.VirtualTimeSource)
     with pytest.raises(evclock.InvalidArgumentError, match="pacing"):
         evclock.loop_factory(clock=url, rtf=2.0)
+
+
+def test_a_sim_driver_refuses_a_remote_clock_and_leaves_the_server_cleanly(
+    tmp_path: Path,
+) -> None:
+    url = address(tmp_path)
+    server = spawn(
+        tmp_path,
+        """
+        import sys, evclock
+        async def main():
+            clock = evclock.clock()
+            async with evclock.serve(sys.argv[1]) as server:
+                await server.wait_for_participants("driver")
+                await server.wait_until_left()  # the refused one leaves cleanly
+                print("left at", clock.now().nanoseconds, flush=True)
+                await server.wait_for_participants("loop")
+                await server.wait_until_left()
+        evclock.run(main())
+        """,
+        url,
+    )
+    source = evclock.RemoteClockSource(f"{url}?name=driver")
+    driver = evclock.SimDriver(source=source)
+
+    async def main() -> None:
+        with pytest.raises(evclock.InvalidTypeError) as info:
+            driver.start()
+        message = str(info.value)
+        assert "can only drive a SimEventLoop, not a SimDriver" in message
+        assert "evclock.run(main(), clock=...)" in message
+        assert "loop_factory(clock=...)" in message
+
+    asyncio.run(main())
+
+    async def joined() -> int:
+        await evclock.clock().sleep(0.003)
+        return evclock.clock().now().nanoseconds
+
+    # The server went on: a SimEventLoop joins it under another name and runs on its time.
+    assert evclock.run(joined(), clock=f"{url}?name=loop") == 3_000_000
+    code, out, err = finish(server)
+    assert code == 0, err
+    assert out.splitlines() == ["left at 0"]

@@ -75,6 +75,7 @@ class RemoteClockSource(TimeSource):
         self._timeout = addr.timeout
         self._sock, now_ns, self.info = self._join(addr)
         self._sock.setblocking(False)
+        self.io_fd: int | None = self._sock.fileno()  # the loop may leave this fd to us
         self._now = now_ns
         self._latest = now_ns  # newest time the server announced (follow)
         self._granted: int | None = None
@@ -170,9 +171,21 @@ class RemoteClockSource(TimeSource):
         # that loop (add_reader), so only a SimEventLoop can host a clock-server link.
         event_loop = getattr(loop, "host", None)
         if not isinstance(event_loop, SimEventLoop):
+            # A SimDriver only approximates "every task has finished its work at t" (a
+            # bounded settle; task inspection on uvloop) and leaves the loop's own timers
+            # on wall time: a DONE it sent could come before work due at t, which lockstep
+            # must never do, and a follower's asyncio timeouts would not follow the
+            # server. Refuse, and leave the server cleanly (it is waiting for this DONE).
+            self.close()
             raise InvalidTypeError(
-                "a RemoteClockSource drives a SimEventLoop (evclock.run(main(), clock=...)); "
-                f"got {type(event_loop).__name__}"
+                f"a RemoteClockSource (the clock server at {self._address}) can only drive a "
+                f"SimEventLoop, not a {type(event_loop).__name__}: lockstep needs a host that "
+                "knows exactly when every task has finished its work at the granted time, "
+                "and the loop's own timers (asyncio.sleep, timeouts) on sim time. Run the "
+                "joining program with evclock.run(main(), clock=...) or EVCLOCK_CLOCK, or "
+                "asyncio.Runner(loop_factory=evclock.loop_factory(clock=...)), and keep "
+                "your foreign loop (uvloop, a web server) in a separate process that talks "
+                "to it"
             )
         super().attach(loop)
         self._loop = event_loop
@@ -458,6 +471,7 @@ class RemoteClockSource(TimeSource):
         if self._lost is None:
             self._lost = ClockLost(reason)
         self._writing = False
+        self.io_fd = None
         if self._reading:
             self._reading = False
             loop: Any = self._loop
