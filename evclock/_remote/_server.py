@@ -16,6 +16,11 @@ participants publish during a round is delivered when the round closes - to the 
 subscribers, then to subscribed participants, lockstep participants in join order - still at
 ``t``, before physics advances; a lockstep participant that receives data is granted ``t``
 again so it handles the data at ``t`` too. Deterministic: nothing depends on arrival order.
+
+A time jump of the simulation (a jump handler on its clock) delivers the open round's data,
+cancels every participant's deadline and sends a numbered JUMP to all of them: each clock
+jumps alike, lockstep participants work at the new time, and DONEs sent before a
+participant read the JUMP (until its JUMPED) are ignored.
 """
 
 from __future__ import annotations
@@ -41,9 +46,10 @@ from .._errors import (
     ParticipantLost,
     ProtocolError,
 )
+from .._jumps import JumpThreshold, TimeJump
 from .._loop import SimEventLoop
 from .._threads import mark_internal
-from .._time import SIM, Time
+from .._time import SIM, Duration, Time
 from . import _protocol as proto
 from ._address import bound_address, listen, parse_address
 
@@ -79,6 +85,8 @@ class _Peer:
         "accepted_at",
         "deadline",
         "index",
+        "jump_acked",
+        "jump_sent",
         "lost",
         "mode",
         "name",
@@ -109,6 +117,8 @@ class _Peer:
         self.lost = False
         self.silent_reported = False
         self.stale_time = False
+        self.jump_sent = 0  # the last JUMP sent to it, and the last it applied (JUMPED):
+        self.jump_acked = 0  # until they match, its DONEs are from before the jump
 
     def describe(self) -> str:
         mode = "lockstep" if self.mode == proto.MODE_LOCKSTEP else "follow"
@@ -191,6 +201,13 @@ class ClockServer:
         self._check_scheduled = False
         self._join_deadline: float | None = None
         self._join_missing: Callable[[], str] = str
+        self._jumps = 0  # time jumps of the simulation so far (JUMP frames are numbered)
+        # Every jump, either way, reaches the participants (their clocks jump alike).
+        self._jump_handle = loop.clock.on_jump(
+            self._before_jump,
+            self._after_jump,
+            threshold=JumpThreshold(min_forward=Duration(nanoseconds=1)),
+        )
         loop.add_reader(self._listener, self._on_accept)
         self._stop_watch = threading.Event()
         self._watchdog = threading.Thread(
@@ -301,6 +318,7 @@ class ClockServer:
         self._working = 0
         self._release_all_holds()
         self._remove_step_hook()
+        self._jump_handle.remove()
         if not self._loop.is_closed():
             self._loop.remove_reader(self._listener)
         self._listener.close()
@@ -400,11 +418,13 @@ class ClockServer:
         elif kind == proto.DONE:
             self._on_done(peer, *proto.parse_done(payload))
         elif kind == proto.PUBLISH:
-            _, topic, data = proto.parse_publish(payload)
+            sent_at, topic, data = proto.parse_publish(payload)
             if peer.mode == proto.MODE_LOCKSTEP:
                 if peer.working_at is None:
                     raise ProtocolError("PUBLISH from a lockstep participant that is not working")
-                peer.outbox.append((peer.working_at, topic, data))
+                # Sent before it read a JUMP: delivered with the round, stamped as sent.
+                stamp = peer.working_at if peer.jump_acked == peer.jump_sent else sent_at
+                peer.outbox.append((stamp, topic, data))
                 self._round_has_data = True
             elif self._working:
                 self._outbox.append((peer.name, self._loop.now_ns, topic, data))
@@ -417,6 +437,11 @@ class ClockServer:
             self._on_call(peer, *proto.parse_call(payload))
         elif kind == proto.SUBSCRIBE:
             peer.subscriptions.add(proto.parse_subscribe(payload))
+        elif kind == proto.JUMPED:
+            seq = proto.parse_jumped(payload)
+            if not peer.jump_acked < seq <= peer.jump_sent:
+                raise ProtocolError(f"JUMPED {seq}, but jump {peer.jump_sent} was the last sent")
+            peer.jump_acked = seq
         elif kind == proto.BYE:
             log.info("clock server: participant %s left at %s", peer.describe(), self._now())
             self._remove(peer, clean=True)
@@ -525,6 +550,8 @@ class ClockServer:
                 self._send_time(peer, now)
 
     def _on_done(self, peer: _Peer, t_ns: int, next_ns: int) -> None:
+        if peer.jump_acked != peer.jump_sent:
+            return  # sent before it read the JUMP: about a time that no longer exists
         now = self._loop.now_ns
         if peer.mode == proto.MODE_FOLLOW:
             self._schedule(peer, next_ns, now)
@@ -571,6 +598,10 @@ class ClockServer:
             return  # the common case: a round without data costs nothing here
         self._round_has_data = False
         regrant: list[_Peer] = []
+        self._deliver_round(regrant)
+        self._grant_all(regrant)
+
+    def _deliver_round(self, regrant: list[_Peer]) -> None:
         while True:
             senders = sorted([*self._peers, *self._departed], key=lambda peer: peer.index)
             self._departed = []
@@ -583,7 +614,6 @@ class ClockServer:
                 break
             for sender, t_ns, topic, data in batch:
                 self._route(sender, t_ns, topic, data, regrant)
-        self._grant_all(regrant)
 
     def _route(self, sender: str, t_ns: int, topic: str, data: bytes, regrant: list[_Peer]) -> None:
         callbacks = self._subscribers.get(topic)
@@ -613,6 +643,40 @@ class ClockServer:
             if peer.working_at is None and not peer.lost and peer in self._peers:
                 self._start_work(peer, now)
                 self._send(peer, proto.grant(now))
+
+    # ------------------------------------------------------------ time jumps
+
+    def _before_jump(self, jump: TimeJump) -> None:
+        """Data of the open round is delivered before the jump, at the time it was sent
+        (as an in-process subscriber would have received it before the jump)."""
+        if self._round_has_data:
+            self._round_has_data = False
+            self._deliver_round([])  # everyone runs again after the jump anyway
+
+    def _after_jump(self, jump: TimeJump) -> None:
+        """Every participant's clock jumps alike, in order with the data sent before it:
+        a lockstep participant works at the new time (its sleeps were woken with
+        ClockJumped, as in-process), a follower asks for its deadline again."""
+        self._jumps += 1
+        seq = self._jumps
+        after = self._loop.now_ns
+        frame = proto.jump(seq, jump.before.nanoseconds, after)
+        for timer, _ in self._due.values():
+            timer.cancel()
+        self._due.clear()
+        for peer in self._peers:
+            peer.deadline = None
+            if peer.lost:
+                continue
+            peer.jump_sent = seq
+            self._send(peer, frame)
+            if peer.mode == proto.MODE_LOCKSTEP:
+                if peer.working_at is None:
+                    self._start_work(peer, after)
+                else:
+                    peer.working_at = after
+                    peer.working_since = time.monotonic()
+        log.info("clock server: sim time jumped %s", jump)
 
     # ------------------------------------------------------------ followers
 
