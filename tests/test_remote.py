@@ -772,3 +772,39 @@ def test_a_jump_while_a_participant_works_supersedes_its_round(tmp_path: Path) -
     assert events[4][1] in (3 * ms, 3_500_000)
     assert events[4][2] == 0
     assert events[5:] == [["woken", 0, 0], ["tick", ms], ["tick", 2 * ms], ["tick", 3 * ms]]
+
+
+def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    proc = spawn(
+        tmp_path,
+        """
+        import json, evclock
+        async def main():
+            clock = evclock.clock()
+            try:
+                await clock.sleep(3600)
+            except evclock.ClockJumped as exc:
+                print(json.dumps([clock.now().nanoseconds, exc.jump.before.nanoseconds,
+                                  exc.jump.after.nanoseconds]))
+        evclock.run(main())
+        """,
+        EVCLOCK_CLOCK=f"{url}?name=f&mode=follow",
+    )
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("f")
+            await clock.sleep(0.5)
+            loop.source.set_time(100_000_000)
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    woken_at, before, after = json.loads(out)
+    assert woken_at == after == 100_000_000
+    # Its clock read 0 (or 0.5 s, had a keepalive told it the time first) before the jump.
+    assert before in (0, 500_000_000)
