@@ -187,12 +187,15 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             lambda: self._thread_id,
             lambda: len(self._io_map) > 1,
             lambda: getattr(self, "_signal_handlers", None) or {},
-            lambda: self._io_map.values(),
+            self._unaccounted_io,
             self._write_to_self,
             watch_threads=bool(watch_threads),
         )
         #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
+        # EXTERNAL-SOURCE HOOK: fds whose traffic their owner accounts for exactly (the
+        # clock server's participant connections): not inferred as work in flight.
+        self._accounted_fds: set[int] = set()  # membership only, never iterated
         # EXTERNAL-SOURCE HOOK: the loop just waited for the source (skip one zero poll);
         # whether the source is external (it may name its fd: TimeSource.io_fd).
         self._source_polled = False
@@ -420,6 +423,22 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
             )
         )
+
+    def _unaccounted_io(self) -> Any:
+        """EXTERNAL-SOURCE HOOK: the registered I/O whose unread bytes may be inferred as
+        work in flight (all of it but the fds their owner accounts for exactly)."""
+        accounted = self._accounted_fds
+        if not accounted:
+            return self._io_map.values()
+        return [key for key in self._io_map.values() if key.fd not in accounted]
+
+    def _account_fd(self, fd: int, accounted: bool) -> None:
+        """EXTERNAL-SOURCE HOOK: ``fd``'s owner accounts for its traffic exactly (it holds
+        sim time itself while that traffic matters): the loop infers nothing from it."""
+        if accounted:
+            self._accounted_fds.add(fd)
+        else:
+            self._accounted_fds.discard(fd)
 
     # ------------------------------------------------ what the kernel asks the loop
 

@@ -31,6 +31,7 @@ import dataclasses
 import hmac
 import json
 import logging
+import operator
 import os
 import socket
 import tempfile
@@ -54,6 +55,7 @@ from . import _protocol as proto
 from ._address import bound_address, listen, parse_address
 
 log = logging.getLogger("evclock.remote")
+_BY_INDEX: Final = operator.attrgetter("index")
 
 FAULT_POLICIES: Final = ("abort", "drop", "pause")
 #: Wall seconds a participant may work on one step before the fault policy applies.
@@ -175,6 +177,7 @@ class ClockServer:
         except (TypeError, ValueError) as exc:
             raise InvalidArgumentError(f"info must be JSON-serialisable: {exc}") from None
         self._loop = loop
+        self._core = loop._core  # its kernel: sim time read as a plain attribute
         self._policy = on_fault
         self._step_timeout = None if step_timeout is None else float(step_timeout)
         self._token = token
@@ -378,6 +381,10 @@ class ClockServer:
             peer = _Peer(sock)
             self._pending.append(peer)
             self._loop.add_reader(sock, self._on_readable, peer)
+            # The server holds sim time exactly while a peer's traffic matters (a working
+            # participant): the loop must not also infer held time from its unread bytes
+            # (a follower that reads late must never hold the simulation).
+            self._loop._account_fd(sock.fileno(), True)
 
     def _on_readable(self, peer: _Peer) -> None:
         try:
@@ -390,7 +397,7 @@ class ClockServer:
         if not data:
             self._lost(peer, "closed its connection without leaving (killed or crashed)")
             return
-        if len(data) == proto.DONE_SIZE and peer.reader.between_frames and peer.name:
+        if len(data) == proto.DONE_SIZE and not peer.reader._buf and peer.name:
             length, kind, t_ns, next_ns = proto.unpack_done(data)
             if kind == proto.DONE and length == proto.DONE_SIZE - 4:  # a round's DONE alone
                 try:
@@ -510,6 +517,7 @@ class ClockServer:
     def _disconnect(self, peer: _Peer) -> None:
         self._unschedule(peer)
         if peer.sock.fileno() >= 0:
+            self._loop._account_fd(peer.sock.fileno(), False)
             if not self._loop.is_closed():
                 self._loop.remove_reader(peer.sock)
                 self._loop.remove_writer(peer.sock)
@@ -535,16 +543,24 @@ class ClockServer:
     def _on_deadline(self, t_ns: int) -> None:
         _, peers = self._due.pop(t_ns)
         if len(peers) > 1:
-            peers.sort(key=lambda peer: peer.index)  # join order, whatever the DONEs' order
-        now = self._loop.now_ns
+            peers.sort(key=_BY_INDEX)  # join order, whatever the DONEs' order
+        now = self._core.now_ns
         grant = None
+        wall = time.monotonic()
         for peer in peers:
             peer.deadline = None
             if peer.mode == proto.MODE_LOCKSTEP:
                 if peer.working_at is not None:
                     continue  # already granted now (data arrived): its DONE names its next one
-                self._start_work(peer, now)
-                grant = grant or proto.grant(now)
+                # _start_work, inline (the hot path of a round)
+                peer.working_at = now
+                peer.working_since = wall
+                peer.silent_reported = False
+                if not self._working:
+                    self._hold()  # one hold per round, however many participants work in it
+                self._working += 1
+                if grant is None:
+                    grant = proto.grant(now)
                 self._send(peer, grant)
             else:
                 self._send_time(peer, now)
@@ -552,7 +568,7 @@ class ClockServer:
     def _on_done(self, peer: _Peer, t_ns: int, next_ns: int) -> None:
         if peer.jump_acked != peer.jump_sent:
             return  # sent before it read the JUMP: about a time that no longer exists
-        now = self._loop.now_ns
+        now = self._core.now_ns
         if peer.mode == proto.MODE_FOLLOW:
             self._schedule(peer, next_ns, now)
             return
@@ -560,8 +576,24 @@ class ClockServer:
             raise ProtocolError(f"DONE at {t_ns} ns, but the participant was granted {now} ns")
         if next_ns != proto.NO_DEADLINE and next_ns <= t_ns:
             raise ProtocolError(f"next deadline {next_ns} ns is not after {t_ns} ns")
-        self._schedule(peer, next_ns, now)
-        self._stop_work(peer)
+        if peer.deadline is None and next_ns > now:  # _schedule's common case, inline
+            peer.deadline = next_ns
+            due = self._due.get(next_ns)
+            if due is not None:
+                due[1].append(peer)
+            else:
+                # SimEventLoop._call_at_ns (evclock's own): exact integer ns, no float trip.
+                timer = self._loop._call_at_ns(
+                    next_ns, next_ns / 1_000_000_000, self._on_deadline, (next_ns,), None
+                )
+                self._due[next_ns] = (timer, [peer])
+        else:
+            self._schedule(peer, next_ns, now)
+        peer.working_at = peer.working_since = None  # _stop_work, inline
+        self._working -= 1
+        if not self._working:
+            self._close_round()  # may grant again (data arrived): the round then goes on
+            self._release()  # after the round closed: physics cannot move in between
 
     def _schedule(self, peer: _Peer, next_ns: int, now: int) -> None:
         if peer.deadline is not None:  # superseded by the deadline the participant just named
