@@ -315,7 +315,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             if io_registered:
                 if self._source_polled:  # EXTERNAL-SOURCE HOOK: see _wait_source
                     self._source_polled = False
-                elif not self._source_alone():
+                elif not (self._source_external and self._source_alone()):
                     self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
                 # The short path when nothing else can matter (no pacing, no I/O, no outside
