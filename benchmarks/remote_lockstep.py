@@ -2,7 +2,7 @@
 
 Usage: python benchmarks/remote_lockstep.py [--rounds 5000] [--participants 1 4 16]
                                             [--repeat 3] [--kuka/--no-kuka] [--json out.json]
-                                            [--against OTHER_CHECKOUT]
+                                            [--against OTHER_CHECKOUT] [--calls/--no-calls]
 
 Measured in one run, each against a baseline of the same run:
 
@@ -19,6 +19,11 @@ Measured in one run, each against a baseline of the same run:
 * **KUKA split**: ``evclock run kuka --serve ... --remote-controllers`` with ``evclock control
   kuka`` in another process, against the in-process ``evclock run kuka``; physics steps per
   wall second of each (from their reports' ``wall_time_s``) and the ratio (target >= 0.5).
+
+* **Python calls per round** (``--calls``, default on): the same rounds under cProfile,
+  counting the function calls of the server and of an active participant per round. Exact
+  and independent of the machine's load (instruction counts under callgrind are too, but
+  take minutes per run on a shared 2-core machine); what a change removed, call by call.
 
 ``--against DIR`` measures another checkout of evclock (``git worktree add /tmp/base main``)
 in the same run, interleaved with this one: before/after figures of a change.
@@ -46,15 +51,21 @@ CLI = [sys.executable, "-c", "from evclock._cli import main; main()"]
 
 SERVER = textwrap.dedent(
     """
-    import json, sys, time, evclock
+    import cProfile, json, os, pstats, sys, time, evclock
+    profile = cProfile.Profile() if os.environ.get("BENCH_CALLS") else None
     async def main():
         count, rounds = int(sys.argv[2]), int(sys.argv[3])
         async with evclock.serve(sys.argv[1]) as server:
             await server.wait_for_participants(count=count)
             wall0, cpu0 = time.perf_counter(), time.process_time()
+            if profile:
+                profile.enable()
             await evclock.clock().sleep(rounds / 1000)  # `rounds` rounds of 1 ms
+            if profile:
+                profile.disable()
             wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-        print(json.dumps({"rounds": rounds, "wall_s": wall, "cpu_s": cpu}))
+        calls = pstats.Stats(profile).total_calls if profile else 0
+        print(json.dumps({"rounds": rounds, "wall_s": wall, "cpu_s": cpu, "calls": calls}))
     evclock.run(main())
     """
 )
@@ -63,7 +74,8 @@ SERVER = textwrap.dedent(
 # Active ones print the CPU seconds they spent from their first round to the end.
 PARTICIPANT = textwrap.dedent(
     """
-    import json, sys, time, evclock
+    import cProfile, json, os, pstats, sys, time, evclock
+    profile = cProfile.Profile() if os.environ.get("BENCH_CALLS") else None
     cpu0 = None
     async def main():
         global cpu0
@@ -72,6 +84,8 @@ PARTICIPANT = textwrap.dedent(
             await clock.sleep(3600)
         await clock.sleep(0.001)
         cpu0 = time.process_time()
+        if profile:
+            profile.enable()
         while True:
             await clock.sleep(0.001)
     try:
@@ -79,7 +93,10 @@ PARTICIPANT = textwrap.dedent(
     except evclock.ClockLost:
         pass
     if cpu0 is not None:
-        print(json.dumps({"cpu_s": time.process_time() - cpu0}))
+        if profile:
+            profile.disable()
+        calls = pstats.Stats(profile).total_calls if profile else 0
+        print(json.dumps({"cpu_s": time.process_time() - cpu0, "calls": calls}))
     """
 )
 
@@ -106,12 +123,19 @@ def ping_pong(rounds: int) -> float:
 
 
 def lockstep(
-    active: int, idle: int, rounds: int, folder: Path, root: Path
+    active: int, idle: int, rounds: int, folder: Path, root: Path, calls: bool = False
 ) -> tuple[float, float, float]:
     """Lockstep rounds per wall second with ``active`` busy and ``idle`` idle participants,
-    and the CPU microseconds per round of the server and of one active participant (mean)."""
+    and the CPU microseconds per round of the server and of one active participant (mean).
+
+    With ``calls``: instead, the Python function calls per round (cProfile's count over
+    the measured rounds: exact and independent of the machine's load) of the server and of
+    one active participant (mean), and 0.0 for the rate.
+    """
     url = f"unix://{folder / f'bench-{active}-{idle}.sock'}"
     env = {**os.environ, "PYTHONPATH": str(root)}
+    if calls:
+        env["BENCH_CALLS"] = "1"
     server = subprocess.Popen(
         [sys.executable, "-c", SERVER, url, str(active + idle), str(rounds)],
         cwd=root,
@@ -130,13 +154,15 @@ def lockstep(
         for i in range(active + idle)
     ]
     out, _ = server.communicate(timeout=600)
-    participant_cpu = [
-        json.loads(proc.communicate(timeout=60)[0])["cpu_s"] for proc in procs[:active]
-    ]
+    reports = [json.loads(proc.communicate(timeout=60)[0]) for proc in procs[:active]]
     for proc in procs[active:]:
         proc.wait(timeout=60)
     result = json.loads(out)
     rounds = result["rounds"]
+    if calls:
+        mean = sum(report["calls"] for report in reports) / len(reports)
+        return 0.0, result["calls"] / rounds, mean / rounds
+    participant_cpu = [report["cpu_s"] for report in reports]
     return (
         rounds / result["wall_s"],
         result["cpu_s"] / rounds * 1e6,
@@ -189,6 +215,12 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--kuka", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--calls",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="also count Python function calls per round (exact, load-independent)",
+    )
     parser.add_argument(
         "--against", type=Path, default=None, help="another evclock checkout, measured alike"
     )
@@ -245,6 +277,24 @@ def main() -> None:
                 f"{results[f'{prefix}kuka_split_steps_per_s']:,.0f} steps/s: ratio "
                 f"{results[f'{prefix}kuka_split_ratio']:.2f}"
             )
+    if args.calls:
+        print("\nPython function calls per round (cProfile count: exact, load-independent):")
+        calls_dir = tempfile.TemporaryDirectory()
+        folder_for_calls = Path(calls_dir.name)
+        for name, active, idle in variants:
+            for prefix, root in checkouts:
+                _, server_calls, participant_calls = lockstep(
+                    active, idle, min(args.rounds, 1000), folder_for_calls, root, calls=True
+                )
+                key = prefix + name.replace("rounds_per_s", "")
+                results[key + "server_calls"] = server_calls
+                results[key + "participant_calls"] = participant_calls
+                label = f"{active} participant(s)" if not idle else f"{active} active + {idle} idle"
+                print(
+                    f"{root}: {label}: server {server_calls:.0f}, each active participant "
+                    f"{participant_calls:.0f}"
+                )
+        calls_dir.cleanup()
     if args.json is not None:
         args.json.write_text(json.dumps(results, indent=2))
 

@@ -187,13 +187,20 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             lambda: self._thread_id,
             lambda: len(self._io_map) > 1,
             lambda: getattr(self, "_signal_handlers", None) or {},
-            lambda: self._io_map.values(),
+            self._unaccounted_io,
             self._write_to_self,
             watch_threads=bool(watch_threads),
             sim_now=lambda: self._core.now_ns,
         )
         #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
+        # EXTERNAL-SOURCE HOOK: fds whose traffic their owner accounts for exactly (the
+        # clock server's participant connections): not inferred as work in flight.
+        self._accounted_fds: set[int] = set()  # membership only, never iterated
+        # EXTERNAL-SOURCE HOOK: the loop just waited for the source (skip one zero poll);
+        # whether the source is external (it may name its fd: TimeSource.io_fd).
+        self._source_polled = False
+        self._source_external = source.external
         self._sim_clock: SimClock | None = None
 
     # ----------------------------------------------------------------- time
@@ -307,7 +314,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         while True:
             io_registered = len(io_map) > self._quiet_fds  # OUTSIDE HOOK: signals too
             if io_registered:
-                self._poll_io(0)  # what arrives is handled at the current sim time
+                if self._source_polled:  # EXTERNAL-SOURCE HOOK: see _wait_source
+                    self._source_polled = False
+                elif not (self._source_external and self._source_alone()):
+                    self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
                 # The short path when nothing else can matter (no pacing, no I/O, no outside
                 # work, no other thread, not an external source): straight to the next
@@ -384,7 +394,52 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 self._describe_waiting_tasks(),
             )
         else:  # WAIT_SOURCE: an external source waits for its messages (through the loop)
-            self._poll_io(_EXTERNAL_POLL)
+            self._wait_source()
+
+    def _wait_source(self) -> None:
+        """EXTERNAL-SOURCE HOOK: wait for an external source's news (serving all I/O).
+
+        The source's reader runs when its fd is readable; then the kernel is asked again
+        at once: the zero-timeout poll that usually precedes the rule is skipped once
+        after this wait (it just polled), and also whenever the only registered I/O is
+        the source's own fd (``TimeSource.io_fd``), which the source reads when asked.
+        """
+        self._poll_io(_EXTERNAL_POLL)
+        self._source_polled = True
+
+    def _source_alone(self) -> bool:
+        """EXTERNAL-SOURCE HOOK: the only thing outside the loop is an external source's
+        own connection (its ``io_fd`` is the one registered fd besides the quiet self-pipe;
+        no outside work, no other thread). The source reads that fd itself when the kernel
+        asks it to advance and accounts for what is in flight on it, so the loop neither
+        polls it beforehand nor infers held time from its unread bytes."""
+        fd = self._source.io_fd
+        return (
+            fd is not None
+            and len(self._io_map) == self._quiet_fds + 1
+            and fd in self._io_map
+            and not self._outside.active
+            and (
+                len(_thread_registry) + len(_thread_limbo) <= 1
+                or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
+            )
+        )
+
+    def _unaccounted_io(self) -> Any:
+        """EXTERNAL-SOURCE HOOK: the registered I/O whose unread bytes may be inferred as
+        work in flight (all of it but the fds their owner accounts for exactly)."""
+        accounted = self._accounted_fds
+        if not accounted:
+            return self._io_map.values()
+        return [key for key in self._io_map.values() if key.fd not in accounted]
+
+    def _account_fd(self, fd: int, accounted: bool) -> None:
+        """EXTERNAL-SOURCE HOOK: ``fd``'s owner accounts for its traffic exactly (it holds
+        sim time itself while that traffic matters): the loop infers nothing from it."""
+        if accounted:
+            self._accounted_fds.add(fd)
+        else:
+            self._accounted_fds.discard(fd)
 
     # ------------------------------------------------ what the kernel asks the loop
 
@@ -400,6 +455,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         first of their ends (the outside model's horizon), as timers and thread timeouts
         race on stock asyncio.
         """
+        if self._source_external and self._source_alone():
+            self._holder = None  # EXTERNAL-SOURCE HOOK: nothing outside but the source
+            return False
         holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
         if holder is None:
             # Bytes that arrived since this iteration polled (a peer thread's reply, just

@@ -625,3 +625,186 @@ def test_loop_factory_joins_a_clock_server(tmp_path: Path) -> None:
         evclock.loop_factory(clock=url, source=evclock.VirtualTimeSource)
     with pytest.raises(evclock.InvalidArgumentError, match="pacing"):
         evclock.loop_factory(clock=url, rtf=2.0)
+
+
+def test_a_sim_driver_refuses_a_remote_clock_and_leaves_the_server_cleanly(
+    tmp_path: Path,
+) -> None:
+    url = address(tmp_path)
+    server = spawn(
+        tmp_path,
+        """
+        import sys, evclock
+        async def main():
+            clock = evclock.clock()
+            async with evclock.serve(sys.argv[1]) as server:
+                await server.wait_for_participants("driver")
+                await server.wait_until_left()  # the refused one leaves cleanly
+                print("left at", clock.now().nanoseconds, flush=True)
+                await server.wait_for_participants("loop")
+                await server.wait_until_left()
+        evclock.run(main())
+        """,
+        url,
+    )
+    source = evclock.RemoteClockSource(f"{url}?name=driver")
+    driver = evclock.SimDriver(source=source)
+
+    async def main() -> None:
+        with pytest.raises(evclock.InvalidTypeError) as info:
+            driver.start()
+        message = str(info.value)
+        assert "can only drive a SimEventLoop, not a SimDriver" in message
+        assert "evclock.run(main(), clock=...)" in message
+        assert "loop_factory(clock=...)" in message
+
+    asyncio.run(main())
+
+    async def joined() -> int:
+        await evclock.clock().sleep(0.003)
+        return evclock.clock().now().nanoseconds
+
+    # The server went on: a SimEventLoop joins it under another name and runs on its time.
+    assert evclock.run(joined(), clock=f"{url}?name=loop") == 3_000_000
+    code, out, err = finish(server)
+    assert code == 0, err
+    assert out.splitlines() == ["left at 0"]
+
+
+JUMPER = """
+import json, evclock
+
+async def main():
+    clock = evclock.clock()
+    link = evclock.participant()
+    events = []
+    link.subscribe(
+        "news",
+        lambda m: events.append(
+            ["msg", m.data.decode(), m.time.nanoseconds, clock.now().nanoseconds]
+        ),
+    )
+    clock.on_jump(
+        post=lambda j: events.append(["jump", j.before.nanoseconds, j.after.nanoseconds]),
+        threshold=evclock.JumpThreshold(min_forward=evclock.Duration(nanoseconds=1)),
+    )
+    ticks = 0
+    while ticks < 6:
+        try:
+            await clock.sleep(0.001)
+            events.append(["tick", clock.now().nanoseconds])
+            ticks += 1
+        except evclock.ClockJumped as exc:
+            events.append(["woken", clock.now().nanoseconds, exc.jump.after.nanoseconds])
+    print(json.dumps(events))
+
+evclock.run(main())
+"""
+
+
+@pytest.mark.parametrize("to_ns", [1_000_000, 9_000_000], ids=["backward", "forward"])
+def test_a_time_jump_reaches_lockstep_participants_in_order_with_data(
+    tmp_path: Path, to_ns: int
+) -> None:
+    url = address(tmp_path)
+    proc = spawn(tmp_path, JUMPER, EVCLOCK_CLOCK=f"{url}?name=p")
+    seen: list[tuple[int, int]] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        clock.on_jump(
+            post=lambda j: seen.append((j.before.nanoseconds, j.after.nanoseconds)),
+            threshold=evclock.JumpThreshold(min_forward=evclock.Duration(nanoseconds=1)),
+        )
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("p")
+            await clock.sleep(0.0035)
+            server.publish("news", b"before")
+            await clock.sleep(0.001)  # 4.5 ms: the participant's tick at 4 ms is done
+            loop.source.set_time(to_ns)  # a reset: the participant's clock jumps alike
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert seen == [(4_500_000, to_ns)]
+    ms = 1_000_000
+    assert json.loads(out) == [
+        ["tick", 1 * ms],
+        ["tick", 2 * ms],
+        ["tick", 3 * ms],
+        ["msg", "before", 3_500_000, 3_500_000],
+        ["tick", 4 * ms],
+        ["jump", 4 * ms, to_ns],  # its own clock's jump: from its time to the new one
+        ["woken", to_ns, to_ns],  # its pending sleep (due at 5 ms) raised ClockJumped
+        ["tick", to_ns + 1 * ms],
+        ["tick", to_ns + 2 * ms],  # six ticks in all: it leaves, the server ends
+    ]
+
+
+def test_a_jump_while_a_participant_works_supersedes_its_round(tmp_path: Path) -> None:
+    # The simulation publishes (granting the subscribed participant 3.5 ms) and jumps back
+    # in the same step: the participant handles the data, then jumps; a DONE it sent for
+    # 3.5 ms before reading the JUMP is about a time that no longer exists and is ignored.
+    url = address(tmp_path)
+    proc = spawn(tmp_path, JUMPER, EVCLOCK_CLOCK=f"{url}?name=p")
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("p")
+            await clock.sleep(0.0035)
+            server.publish("news", b"before")
+            loop.source.set_time(0)
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    events = json.loads(out)
+    ms = 1_000_000
+    assert events[:4] == [["tick", ms], ["tick", 2 * ms], ["tick", 3 * ms], events[3]]
+    assert events[3][:3] == ["msg", "before", 3_500_000]
+    # Its clock read 3 ms or 3.5 ms when the jump came (whether it had applied the grant).
+    assert events[4][0] == "jump"
+    assert events[4][1] in (3 * ms, 3_500_000)
+    assert events[4][2] == 0
+    assert events[5:] == [["woken", 0, 0], ["tick", ms], ["tick", 2 * ms], ["tick", 3 * ms]]
+
+
+def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
+    url = address(tmp_path)
+    proc = spawn(
+        tmp_path,
+        """
+        import json, evclock
+        async def main():
+            clock = evclock.clock()
+            try:
+                await clock.sleep(3600)
+            except evclock.ClockJumped as exc:
+                print(json.dumps([clock.now().nanoseconds, exc.jump.before.nanoseconds,
+                                  exc.jump.after.nanoseconds]))
+        evclock.run(main())
+        """,
+        EVCLOCK_CLOCK=f"{url}?name=f&mode=follow",
+    )
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("f")
+            await clock.sleep(0.5)
+            loop.source.set_time(100_000_000)
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    woken_at, before, after = json.loads(out)
+    assert woken_at == after == 100_000_000
+    # Its clock read 0 (or 0.5 s, had a keepalive told it the time first) before the jump.
+    assert before in (0, 500_000_000)

@@ -262,7 +262,7 @@ def raw_exchange(address: str, payload: bytes) -> bytes:
     [
         (
             proto.hello(proto.MODE_LOCKSTEP, "old", None, version=99),
-            "protocol version 99 is not supported: this clock server speaks version 1; run the "
+            "protocol version 99 is not supported: this clock server speaks version 2; run the "
             "same evclock version on both sides",
         ),
         (

@@ -6,7 +6,9 @@ external-source contract: :meth:`RemoteClockSource.advance` never blocks; it ret
 time the server granted (lockstep) or announced (follow), or the unchanged time to say
 "waiting for the server", and the loop then waits for the socket (registered with
 ``add_reader``). Its time is the server's, exactly: after a grant at ``t`` every local
-deadline up to ``t`` fires at ``t``, as on an in-process stepping source.
+deadline up to ``t`` fires at ``t``, as on an in-process stepping source. A jump of the
+server's time (JUMP) is applied as an in-process jump (``SourceHost.jump``): handlers run,
+pending sleeps raise ``ClockJumped``, asyncio timers keep their remaining delay.
 """
 
 from __future__ import annotations
@@ -75,6 +77,7 @@ class RemoteClockSource(TimeSource):
         self._timeout = addr.timeout
         self._sock, now_ns, self.info = self._join(addr)
         self._sock.setblocking(False)
+        self.io_fd: int | None = self._sock.fileno()  # the loop may leave this fd to us
         self._now = now_ns
         self._latest = now_ns  # newest time the server announced (follow)
         self._granted: int | None = None
@@ -170,9 +173,21 @@ class RemoteClockSource(TimeSource):
         # that loop (add_reader), so only a SimEventLoop can host a clock-server link.
         event_loop = getattr(loop, "host", None)
         if not isinstance(event_loop, SimEventLoop):
+            # A SimDriver only approximates "every task has finished its work at t" (a
+            # bounded settle; task inspection on uvloop) and leaves the loop's own timers
+            # on wall time: a DONE it sent could come before work due at t, which lockstep
+            # must never do, and a follower's asyncio timeouts would not follow the
+            # server. Refuse, and leave the server cleanly (it is waiting for this DONE).
+            self.close()
             raise InvalidTypeError(
-                "a RemoteClockSource drives a SimEventLoop (evclock.run(main(), clock=...)); "
-                f"got {type(event_loop).__name__}"
+                f"a RemoteClockSource (the clock server at {self._address}) can only drive a "
+                f"SimEventLoop, not a {type(event_loop).__name__}: lockstep needs a host that "
+                "knows exactly when every task has finished its work at the granted time, "
+                "and the loop's own timers (asyncio.sleep, timeouts) on sim time. Run the "
+                "joining program with evclock.run(main(), clock=...) or EVCLOCK_CLOCK, or "
+                "asyncio.Runner(loop_factory=evclock.loop_factory(clock=...)), and keep "
+                "your foreign loop (uvloop, a web server) in a separate process that talks "
+                "to it"
             )
         super().attach(loop)
         self._loop = event_loop
@@ -342,7 +357,10 @@ class RemoteClockSource(TimeSource):
         if not due:
             return
         self._inbox = [m for m in self._inbox if m[0] > now]
-        for t_ns, sender, topic, data in due:
+        self._deliver(due)
+
+    def _deliver(self, messages: list[tuple[int, str, str, bytes]]) -> None:
+        for t_ns, sender, topic, data in messages:
             message = Message(sender, topic, Time._from_ns(t_ns, SIM), data)
             for callback in self._subscribers.get(topic, ()):
                 callback(message)
@@ -436,16 +454,37 @@ class RemoteClockSource(TimeSource):
         elif kind == proto.REPLY:
             call_id, ok, data = proto.parse_reply(payload)
             self._replies[call_id] = (ok, data)
+        elif kind == proto.JUMP:
+            self._on_jump(*proto.parse_jump(payload))
         elif kind == proto.CLOSING:
             self._lose(payload.decode(errors="replace"))
         else:
             raise ProtocolError(f"unexpected frame kind {kind} from the server")
 
+    def _on_jump(self, seq: int, before_ns: int, after_ns: int) -> None:
+        """The simulation's time jumped: this clock jumps alike (evclock's jump policy:
+        handlers run, pending sleeps raise ClockJumped, asyncio timers keep their remaining
+        delay), after the data delivered before the jump, then works at the new time."""
+        pending, self._inbox = self._inbox, []
+        self._deliver(pending)  # everything delivered before the jump is handled before it
+        self._granted = None  # a grant read before the jump is about the old time
+        self._latest = after_ns
+        self._asked = proto.NO_DEADLINE  # a follower names its deadline again
+        self._waiting_since = None
+        if self._lockstep:
+            self._working = True  # granted the new time: DONE once its work there is done
+        self._send(proto.jumped(seq))
+        if after_ns != self._now:
+            host: Any = self._host
+            host.jump(self._now, after_ns, self._assign)
+
+    def _assign(self, t_ns: int) -> None:
+        self._now = t_ns
+
     def _check_forward(self, t_ns: int) -> None:
         if t_ns < self._now:
             raise ProtocolError(
-                f"sim time went backwards ({self._now} -> {t_ns} ns): the simulation reset or "
-                "restored a snapshot; backward jumps are not propagated across processes"
+                f"sim time went backwards ({self._now} -> {t_ns} ns) without a JUMP frame"
             )
 
     def _closed_by_server(self) -> str:
@@ -458,6 +497,7 @@ class RemoteClockSource(TimeSource):
         if self._lost is None:
             self._lost = ClockLost(reason)
         self._writing = False
+        self.io_fd = None
         if self._reading:
             self._reading = False
             loop: Any = self._loop

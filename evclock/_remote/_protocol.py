@@ -8,7 +8,10 @@ GRANT(t) to the participant and DONE(t, next deadline) back, each packed by a pr
 ``struct`` into one small ``bytes``.
 
 Frames of one connection are handled in the order they were sent: data a participant
-PUBLISHes before its DONE(t) is in the simulation's hands before that DONE is read.
+PUBLISHes before its DONE(t) is in the simulation's hands before that DONE is read, and data
+DELIVERed before a JUMP is handled before the participant's clock jumps. Jumps are numbered;
+the participant answers each with JUMPED(n), and the server ignores the DONEs it receives
+between sending JUMP(n) and reading JUMPED(n) (sent before the jump was read).
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ from typing import Final
 from .._errors import ProtocolError
 
 MAGIC: Final = b"EVCLK"
-VERSION: Final = 1
+VERSION: Final = 2  # 2: JUMP / JUMPED (time jumps reach participants)
 #: Frames larger than this are garbage (or a different protocol): the connection is dropped.
 MAX_FRAME: Final = 16 * 1024 * 1024
 
@@ -37,6 +40,8 @@ CALL: Final = ord("C")  # participant -> server: call id, service, data
 REPLY: Final = ord("R")  # server -> participant: call id, ok, data (or error text)
 BYE: Final = ord("B")  # participant -> server: leaving cleanly
 CLOSING: Final = ord("Z")  # server -> participant: the server stops serving (reason)
+JUMP: Final = ord("J")  # server -> participant: jump number, before, after (a time jump)
+JUMPED: Final = ord("K")  # participant -> server: jump number (applied; DONEs count again)
 
 MODE_LOCKSTEP: Final = 0
 MODE_FOLLOW: Final = 1
@@ -78,6 +83,32 @@ def time_frame(t_ns: int) -> bytes:
 def done(t_ns: int, next_ns: int) -> bytes:
     """DONE: finished everything at ``t_ns``; the next deadline (``NO_DEADLINE``: none)."""
     return _DONE_PACK(17, DONE, t_ns, next_ns)
+
+
+_JUMP = struct.Struct("<Iqq")
+
+
+def jump(seq: int, before_ns: int, after_ns: int) -> bytes:
+    """JUMP: the simulation's time jumped (reset, restored snapshot, ``set_time``)."""
+    return _frame(JUMP, _JUMP.pack(seq, before_ns, after_ns))
+
+
+def jumped(seq: int) -> bytes:
+    """JUMPED: the participant applied jump ``seq``; its next DONE is at the new time."""
+    return _frame(JUMPED, _I.pack(seq))
+
+
+def parse_jump(payload: bytes) -> tuple[int, int, int]:
+    """``(seq, before_ns, after_ns)``."""
+    _need(payload, _JUMP.size, "JUMP")
+    seq, before, after = _JUMP.unpack_from(payload)
+    return seq, before, after
+
+
+def parse_jumped(payload: bytes) -> int:
+    _need(payload, 4, "JUMPED")
+    value: int = _I.unpack_from(payload)[0]
+    return value
 
 
 def _frame(kind: int, payload: bytes) -> bytes:

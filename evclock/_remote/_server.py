@@ -16,6 +16,11 @@ participants publish during a round is delivered when the round closes - to the 
 subscribers, then to subscribed participants, lockstep participants in join order - still at
 ``t``, before physics advances; a lockstep participant that receives data is granted ``t``
 again so it handles the data at ``t`` too. Deterministic: nothing depends on arrival order.
+
+A time jump of the simulation (a jump handler on its clock) delivers the open round's data,
+cancels every participant's deadline and sends a numbered JUMP to all of them: each clock
+jumps alike, lockstep participants work at the new time, and DONEs sent before a
+participant read the JUMP (until its JUMPED) are ignored.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ import dataclasses
 import hmac
 import json
 import logging
+import operator
 import os
 import socket
 import tempfile
@@ -41,13 +47,15 @@ from .._errors import (
     ParticipantLost,
     ProtocolError,
 )
+from .._jumps import JumpThreshold, TimeJump
 from .._loop import SimEventLoop
 from .._threads import mark_internal
-from .._time import SIM, Time
+from .._time import SIM, Duration, Time
 from . import _protocol as proto
 from ._address import bound_address, listen, parse_address
 
 log = logging.getLogger("evclock.remote")
+_BY_INDEX: Final = operator.attrgetter("index")
 
 FAULT_POLICIES: Final = ("abort", "drop", "pause")
 #: Wall seconds a participant may work on one step before the fault policy applies.
@@ -79,6 +87,8 @@ class _Peer:
         "accepted_at",
         "deadline",
         "index",
+        "jump_acked",
+        "jump_sent",
         "lost",
         "mode",
         "name",
@@ -109,6 +119,8 @@ class _Peer:
         self.lost = False
         self.silent_reported = False
         self.stale_time = False
+        self.jump_sent = 0  # the last JUMP sent to it, and the last it applied (JUMPED):
+        self.jump_acked = 0  # until they match, its DONEs are from before the jump
 
     def describe(self) -> str:
         mode = "lockstep" if self.mode == proto.MODE_LOCKSTEP else "follow"
@@ -165,6 +177,7 @@ class ClockServer:
         except (TypeError, ValueError) as exc:
             raise InvalidArgumentError(f"info must be JSON-serialisable: {exc}") from None
         self._loop = loop
+        self._core = loop._core  # its kernel: sim time read as a plain attribute
         self._policy = on_fault
         self._step_timeout = None if step_timeout is None else float(step_timeout)
         self._token = token
@@ -191,6 +204,13 @@ class ClockServer:
         self._check_scheduled = False
         self._join_deadline: float | None = None
         self._join_missing: Callable[[], str] = str
+        self._jumps = 0  # time jumps of the simulation so far (JUMP frames are numbered)
+        # Every jump, either way, reaches the participants (their clocks jump alike).
+        self._jump_handle = loop.clock.on_jump(
+            self._before_jump,
+            self._after_jump,
+            threshold=JumpThreshold(min_forward=Duration(nanoseconds=1)),
+        )
         loop.add_reader(self._listener, self._on_accept)
         self._stop_watch = threading.Event()
         self._watchdog = threading.Thread(
@@ -301,6 +321,7 @@ class ClockServer:
         self._working = 0
         self._release_all_holds()
         self._remove_step_hook()
+        self._jump_handle.remove()
         if not self._loop.is_closed():
             self._loop.remove_reader(self._listener)
         self._listener.close()
@@ -360,6 +381,10 @@ class ClockServer:
             peer = _Peer(sock)
             self._pending.append(peer)
             self._loop.add_reader(sock, self._on_readable, peer)
+            # The server holds sim time exactly while a peer's traffic matters (a working
+            # participant): the loop must not also infer held time from its unread bytes
+            # (a follower that reads late must never hold the simulation).
+            self._loop._account_fd(sock.fileno(), True)
 
     def _on_readable(self, peer: _Peer) -> None:
         try:
@@ -372,7 +397,7 @@ class ClockServer:
         if not data:
             self._lost(peer, "closed its connection without leaving (killed or crashed)")
             return
-        if len(data) == proto.DONE_SIZE and peer.reader.between_frames and peer.name:
+        if len(data) == proto.DONE_SIZE and not peer.reader._buf and peer.name:
             length, kind, t_ns, next_ns = proto.unpack_done(data)
             if kind == proto.DONE and length == proto.DONE_SIZE - 4:  # a round's DONE alone
                 try:
@@ -400,11 +425,13 @@ class ClockServer:
         elif kind == proto.DONE:
             self._on_done(peer, *proto.parse_done(payload))
         elif kind == proto.PUBLISH:
-            _, topic, data = proto.parse_publish(payload)
+            sent_at, topic, data = proto.parse_publish(payload)
             if peer.mode == proto.MODE_LOCKSTEP:
                 if peer.working_at is None:
                     raise ProtocolError("PUBLISH from a lockstep participant that is not working")
-                peer.outbox.append((peer.working_at, topic, data))
+                # Sent before it read a JUMP: delivered with the round, stamped as sent.
+                stamp = peer.working_at if peer.jump_acked == peer.jump_sent else sent_at
+                peer.outbox.append((stamp, topic, data))
                 self._round_has_data = True
             elif self._working:
                 self._outbox.append((peer.name, self._loop.now_ns, topic, data))
@@ -417,6 +444,11 @@ class ClockServer:
             self._on_call(peer, *proto.parse_call(payload))
         elif kind == proto.SUBSCRIBE:
             peer.subscriptions.add(proto.parse_subscribe(payload))
+        elif kind == proto.JUMPED:
+            seq = proto.parse_jumped(payload)
+            if not peer.jump_acked < seq <= peer.jump_sent:
+                raise ProtocolError(f"JUMPED {seq}, but jump {peer.jump_sent} was the last sent")
+            peer.jump_acked = seq
         elif kind == proto.BYE:
             log.info("clock server: participant %s left at %s", peer.describe(), self._now())
             self._remove(peer, clean=True)
@@ -485,6 +517,7 @@ class ClockServer:
     def _disconnect(self, peer: _Peer) -> None:
         self._unschedule(peer)
         if peer.sock.fileno() >= 0:
+            self._loop._account_fd(peer.sock.fileno(), False)
             if not self._loop.is_closed():
                 self._loop.remove_reader(peer.sock)
                 self._loop.remove_writer(peer.sock)
@@ -510,22 +543,32 @@ class ClockServer:
     def _on_deadline(self, t_ns: int) -> None:
         _, peers = self._due.pop(t_ns)
         if len(peers) > 1:
-            peers.sort(key=lambda peer: peer.index)  # join order, whatever the DONEs' order
-        now = self._loop.now_ns
+            peers.sort(key=_BY_INDEX)  # join order, whatever the DONEs' order
+        now = self._core.now_ns
         grant = None
+        wall = time.monotonic()
         for peer in peers:
             peer.deadline = None
             if peer.mode == proto.MODE_LOCKSTEP:
                 if peer.working_at is not None:
                     continue  # already granted now (data arrived): its DONE names its next one
-                self._start_work(peer, now)
-                grant = grant or proto.grant(now)
+                # _start_work, inline (the hot path of a round)
+                peer.working_at = now
+                peer.working_since = wall
+                peer.silent_reported = False
+                if not self._working:
+                    self._hold()  # one hold per round, however many participants work in it
+                self._working += 1
+                if grant is None:
+                    grant = proto.grant(now)
                 self._send(peer, grant)
             else:
                 self._send_time(peer, now)
 
     def _on_done(self, peer: _Peer, t_ns: int, next_ns: int) -> None:
-        now = self._loop.now_ns
+        if peer.jump_acked != peer.jump_sent:
+            return  # sent before it read the JUMP: about a time that no longer exists
+        now = self._core.now_ns
         if peer.mode == proto.MODE_FOLLOW:
             self._schedule(peer, next_ns, now)
             return
@@ -533,8 +576,24 @@ class ClockServer:
             raise ProtocolError(f"DONE at {t_ns} ns, but the participant was granted {now} ns")
         if next_ns != proto.NO_DEADLINE and next_ns <= t_ns:
             raise ProtocolError(f"next deadline {next_ns} ns is not after {t_ns} ns")
-        self._schedule(peer, next_ns, now)
-        self._stop_work(peer)
+        if peer.deadline is None and next_ns > now:  # _schedule's common case, inline
+            peer.deadline = next_ns
+            due = self._due.get(next_ns)
+            if due is not None:
+                due[1].append(peer)
+            else:
+                # SimEventLoop._call_at_ns (evclock's own): exact integer ns, no float trip.
+                timer = self._loop._call_at_ns(
+                    next_ns, next_ns / 1_000_000_000, self._on_deadline, (next_ns,), None
+                )
+                self._due[next_ns] = (timer, [peer])
+        else:
+            self._schedule(peer, next_ns, now)
+        peer.working_at = peer.working_since = None  # _stop_work, inline
+        self._working -= 1
+        if not self._working:
+            self._close_round()  # may grant again (data arrived): the round then goes on
+            self._release()  # after the round closed: physics cannot move in between
 
     def _schedule(self, peer: _Peer, next_ns: int, now: int) -> None:
         if peer.deadline is not None:  # superseded by the deadline the participant just named
@@ -571,6 +630,10 @@ class ClockServer:
             return  # the common case: a round without data costs nothing here
         self._round_has_data = False
         regrant: list[_Peer] = []
+        self._deliver_round(regrant)
+        self._grant_all(regrant)
+
+    def _deliver_round(self, regrant: list[_Peer]) -> None:
         while True:
             senders = sorted([*self._peers, *self._departed], key=lambda peer: peer.index)
             self._departed = []
@@ -583,7 +646,6 @@ class ClockServer:
                 break
             for sender, t_ns, topic, data in batch:
                 self._route(sender, t_ns, topic, data, regrant)
-        self._grant_all(regrant)
 
     def _route(self, sender: str, t_ns: int, topic: str, data: bytes, regrant: list[_Peer]) -> None:
         callbacks = self._subscribers.get(topic)
@@ -613,6 +675,40 @@ class ClockServer:
             if peer.working_at is None and not peer.lost and peer in self._peers:
                 self._start_work(peer, now)
                 self._send(peer, proto.grant(now))
+
+    # ------------------------------------------------------------ time jumps
+
+    def _before_jump(self, jump: TimeJump) -> None:
+        """Data of the open round is delivered before the jump, at the time it was sent
+        (as an in-process subscriber would have received it before the jump)."""
+        if self._round_has_data:
+            self._round_has_data = False
+            self._deliver_round([])  # everyone runs again after the jump anyway
+
+    def _after_jump(self, jump: TimeJump) -> None:
+        """Every participant's clock jumps alike, in order with the data sent before it:
+        a lockstep participant works at the new time (its sleeps were woken with
+        ClockJumped, as in-process), a follower asks for its deadline again."""
+        self._jumps += 1
+        seq = self._jumps
+        after = self._loop.now_ns
+        frame = proto.jump(seq, jump.before.nanoseconds, after)
+        for timer, _ in self._due.values():
+            timer.cancel()
+        self._due.clear()
+        for peer in self._peers:
+            peer.deadline = None
+            if peer.lost:
+                continue
+            peer.jump_sent = seq
+            self._send(peer, frame)
+            if peer.mode == proto.MODE_LOCKSTEP:
+                if peer.working_at is None:
+                    self._start_work(peer, after)
+                else:
+                    peer.working_at = after
+                    peer.working_since = time.monotonic()
+        log.info("clock server: sim time jumped %s", jump)
 
     # ------------------------------------------------------------ followers
 

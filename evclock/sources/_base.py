@@ -85,6 +85,14 @@ class TimeSource(abc.ABC):
     #: outside is lost. An external source is ``free_running``: idle is not a deadlock.
     external: bool = False
 
+    #: An ``external`` source whose news arrives on one file descriptor it registered
+    #: with ``loop.add_reader`` may name it here (or set it in :meth:`attach`). When that
+    #: fd is the only I/O and nothing else runs outside the loop, the loop asks the
+    #: source directly instead of polling first, and does not count the fd's unread bytes
+    #: as work in flight: the source reads the fd itself in :meth:`advance` if it needs
+    #: to, and answers for what travels on it.
+    io_fd: int | None = None
+
     _host: SourceHost | None = None
 
     def attach(self, loop: SourceHost) -> None:
