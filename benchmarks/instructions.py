@@ -26,16 +26,20 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import os
 import random
 import re
 import subprocess
 import sys
+import time
 from collections.abc import Callable, Generator, Sequence
 from typing import Any
 
 MIN_NS = 1_000_000
 MAX_NS = 10_000_000
+#: Plain (wall-time) runs of each process; the fastest is kept.
+WALL_REPEAT = 3
 
 
 def plan(tasks: int, count: int, seed: int) -> list[list[float]]:
@@ -138,7 +142,86 @@ def simpy_timeouts(rows: list[list[float]]) -> None:
     env.run()
 
 
+# KUKA (PyBullet): the controllers of benchmarks/kuka_throughput.py, run by evclock rate
+# loops or by a hand-written synchronous loop; ``count`` is the number of physics steps. Each
+# prints the arm's final joint state, which must be bit-identical between the two.
+
+KUKA_HZ = 100.0  # set by --kuka-hz in the process that runs a KUKA variant
+
+
+def _kuka_state(ctl: Any) -> str:
+    import pybullet as pb
+
+    arm = ctl.arm
+    states = pb.getJointStates(arm.robot, arm.joints, physicsClientId=arm.client)
+    return repr([(s[0], s[1]) for s in states] + [ctl.plans, ctl.target_index])
+
+
+def kuka_sync(rows: list[list[float]]) -> None:
+    import kuka_throughput as k
+    import pybullet as pb
+
+    steps = len(rows[0])
+    client = pb.connect(pb.DIRECT)
+    try:
+        ctl = k.Controllers(client, KUKA_HZ)
+        control_due = k.ticks_due(KUKA_HZ, steps)
+        plan_due = k.ticks_due(k.PLANNER_HZ, steps)
+        # When both are due at one step, the one that ran (and so re-armed) first goes
+        # first, as equal deadlines fire in scheduling order on the sim loop.
+        control_first = True
+        for step in range(steps):
+            control, plan_ = control_due[step], plan_due[step]
+            if control and plan_:
+                if not control_first:
+                    ctl.plan()
+                ctl.control()
+                if control_first:
+                    ctl.plan()
+            elif control:
+                ctl.control()
+                control_first = False
+            elif plan_:
+                ctl.plan()
+                control_first = True
+            pb.stepSimulation(physicsClientId=client)
+        print("state", _kuka_state(ctl))
+    finally:
+        pb.disconnect(client)
+
+
+def kuka_evclock(rows: list[list[float]]) -> None:
+    import kuka_throughput as k
+
+    import evclock
+
+    steps = len(rows[0])
+    source = evclock.PyBulletTimeSource.connect()
+    ctl = k.Controllers(source.client, KUKA_HZ)
+
+    async def every(hz: float, work: Callable[[], None]) -> None:
+        async for _tick in evclock.clock().rate(hz):
+            work()
+
+    async def main() -> None:
+        clock = evclock.clock()
+        async with asyncio.TaskGroup() as tg:
+            control = tg.create_task(every(KUKA_HZ, ctl.control))
+            planner = tg.create_task(every(k.PLANNER_HZ, ctl.plan))
+            # Main's wait ends first at that instant (scheduled first): the ticks due then are
+            # cancelled, as the synchronous loop stops before its step `steps`.
+            await clock.sleep(steps / k.PHYSICS_HZ)  # exact: steps is a multiple of 6
+            control.cancel()
+            planner.cancel()
+        assert source.step_index == steps, (source.step_index, steps)
+        print("state", _kuka_state(ctl))
+
+    evclock.run(main(), source=source)
+
+
 VARIANTS: dict[str, Callable[[list[list[float]]], None]] = {
+    "kuka sync": kuka_sync,
+    "kuka evclock": kuka_evclock,
     "clock.sleep": clock_sleep,
     "asyncio.sleep (sim loop)": asyncio_sleep_sim,
     "asyncio.sleep(0) (stock loop)": asyncio_sleep0,
@@ -151,40 +234,88 @@ VARIANTS: dict[str, Callable[[list[list[float]]], None]] = {
 # ------------------------------------------------------------------------------ harness
 
 
-def instructions(variant: str, tasks: int, count: int, seed: int) -> int:
-    """Instructions executed by one process running ``variant`` (callgrind's total)."""
+def _command(variant: str, tasks: int, count: int, seed: int, hz: float) -> list[str]:
+    return [
+        sys.executable,
+        os.path.abspath(__file__),
+        "--variant",
+        variant,
+        "--tasks",
+        str(tasks),
+        "--count",
+        str(count),
+        "--seed",
+        str(seed),
+        "--kuka-hz",
+        repr(hz),
+    ]
+
+
+def _output(stdout: str, key: str) -> str:
+    for line in stdout.splitlines():
+        if line.startswith(key + " "):
+            return line[len(key) + 1 :]
+    raise RuntimeError(f"no {key!r} line in the variant's output:\n{stdout}")
+
+
+def instructions(variant: str, tasks: int, count: int, seed: int, hz: float) -> tuple[int, str]:
+    """Instructions executed by one process running ``variant`` (callgrind's total), and
+    the process's output."""
     done = subprocess.run(
         [
             "valgrind",
             "--tool=callgrind",
             "--callgrind-out-file=/dev/null",
-            sys.executable,
-            os.path.abspath(__file__),
-            "--variant",
-            variant,
-            "--tasks",
-            str(tasks),
-            "--count",
-            str(count),
-            "--seed",
-            str(seed),
+            *_command(variant, tasks, count, seed, hz),
         ],
         capture_output=True,
         text=True,
-        timeout=3600,
+        timeout=7200,
         check=True,
     )
     found = re.search(r"Collected : (\d+)", done.stderr)
     if found is None:
         raise RuntimeError(f"no instruction count in callgrind's output:\n{done.stderr}")
-    return int(found.group(1))
+    return int(found.group(1)), done.stdout
 
 
-def per_wakeup(variant: str, tasks: int, count: int, seed: int) -> float:
-    """Instructions per wakeup: (full run - empty run) / wakeups."""
-    full = instructions(variant, tasks, count, seed)
-    empty = instructions(variant, tasks, 0, seed)
-    return (full - empty) / (tasks * count)
+def wall(variant: str, tasks: int, count: int, seed: int, hz: float) -> float:
+    """Wall seconds of the workload in one plain process (the best of ``WALL_REPEAT``)."""
+    best = math.inf
+    for _ in range(WALL_REPEAT):
+        done = subprocess.run(
+            _command(variant, tasks, count, seed, hz),
+            capture_output=True,
+            text=True,
+            timeout=3600,
+            check=True,
+        )
+        best = min(best, float(_output(done.stdout, "wall")))
+    return best
+
+
+class Cost:
+    """Per unit (wakeup, physics step): (full run - empty run) / units, in instructions
+    and in wall nanoseconds; ``out`` is the full run's output."""
+
+    def __init__(self, variant: str, tasks: int, count: int, seed: int, hz: float = 0.0):
+        full, self.out = instructions(variant, tasks, count, seed, hz)
+        empty, _ = instructions(variant, tasks, 0, seed, hz)
+        units = tasks * count
+        self.instr = (full - empty) / units
+        wall_full = wall(variant, tasks, count, seed, hz)
+        wall_empty = wall(variant, tasks, 0, seed, hz)
+        self.ns = (wall_full - wall_empty) / units * 1e9
+
+
+def _row(name: str, cost: Cost, base: Cost, against: str) -> str:
+    return (
+        f"  {name:<32}{cost.instr:>10,.0f}{cost.instr / base.instr:>8.2f}x"
+        f"{cost.ns:>10,.0f}{cost.ns / base.ns:>8.2f}x   (vs {against})"
+    )
+
+
+HEADER = f"  {'':<32}{'instr':>10}{'ratio':>9}{'wall ns':>10}{'ratio':>9}"
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
@@ -194,48 +325,73 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--waits", type=int, default=100, help="timed-out waits per task")
     p.add_argument("--big", type=int, default=100_000, help="concurrent sleepers (scale)")
     p.add_argument("--big-sleeps", type=int, default=3, help="sleeps per task at --big")
+    p.add_argument("--kuka-steps", type=int, default=2400, help="physics steps (multiple of 6)")
     p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--only", choices=["fanout", "timeouts", "scale"], action="append")
+    p.add_argument("--only", choices=["fanout", "timeouts", "scale", "kuka"], action="append")
     p.add_argument("--variant", choices=sorted(VARIANTS), help=argparse.SUPPRESS)
     p.add_argument("--count", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--kuka-hz", type=float, default=KUKA_HZ, help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    global KUKA_HZ
     args = parse_args(argv)
     if args.variant is not None:
-        VARIANTS[args.variant](plan(args.tasks, args.count, args.seed))
+        KUKA_HZ = args.kuka_hz
+        rows = plan(args.tasks, args.count, args.seed)
+        # Imports happen before the wall clock starts (callgrind's count subtracts them).
+        __import__("kuka_throughput" if args.variant.startswith("kuka") else "evclock")
+        if args.variant.startswith("simpy"):
+            __import__("simpy")
+        start = time.perf_counter()
+        VARIANTS[args.variant](rows)
+        print("wall", repr(time.perf_counter() - start))
         return 0
-    parts = args.only or ["fanout", "timeouts", "scale"]
-    print(f"python {sys.version.split()[0]}; instructions per wakeup under callgrind")
+    parts = args.only or ["fanout", "timeouts", "scale", "kuka"]
+    print(
+        f"python {sys.version.split()[0]}; per wakeup: instructions under callgrind and wall "
+        f"ns (best of {WALL_REPEAT} plain runs), (full run - empty run) / wakeups"
+    )
     if "fanout" in parts:
-        n, k = args.tasks, args.sleeps
-        print(f"\nfanout: {n} tasks x {k} sleeps (seed {args.seed})")
-        costs = {
-            v: per_wakeup(v, n, k, args.seed)
-            for v in (
-                "clock.sleep",
-                "asyncio.sleep (sim loop)",
-                "simpy timeout",
-                "asyncio.sleep(0) (stock loop)",
-            )
-        }
-        floor = costs["asyncio.sleep(0) (stock loop)"]
-        for name, cost in costs.items():
-            print(f"  {name:<32}{cost:>10,.0f}   {cost / floor:.2f}x the asyncio.sleep(0) floor")
+        n, k, seed = args.tasks, args.sleeps, args.seed
+        print(f"\nfanout: {n} tasks x {k} sleeps (seed {seed})\n{HEADER}")
+        floor = Cost("asyncio.sleep(0) (stock loop)", n, k, seed)
+        for name in ("clock.sleep", "asyncio.sleep (sim loop)", "simpy timeout"):
+            print(_row(name, Cost(name, n, k, seed), floor, "the asyncio.sleep(0) floor"))
+        print(_row("asyncio.sleep(0) (stock loop)", floor, floor, "itself"))
     if "timeouts" in parts:
-        n, k = args.tasks, args.waits
-        print(f"\ntimeouts: {n} tasks x {k} waits that time out (seed {args.seed})")
-        ours = per_wakeup("asyncio.timeout (sim loop)", n, k, args.seed)
-        simpy = per_wakeup("simpy never | timeout", n, k, args.seed)
-        print(f"  {'asyncio.timeout (sim loop)':<32}{ours:>10,.0f}   {ours / simpy:.2f}x SimPy")
-        print(f"  {'simpy never | timeout':<32}{simpy:>10,.0f}")
+        n, k, seed = args.tasks, args.waits, args.seed
+        print(f"\ntimeouts: {n} tasks x {k} waits that time out (seed {seed})\n{HEADER}")
+        simpy = Cost("simpy never | timeout", n, k, seed)
+        ours = Cost("asyncio.timeout (sim loop)", n, k, seed)
+        print(_row("asyncio.timeout (sim loop)", ours, simpy, "SimPy"))
+        print(_row("simpy never | timeout", simpy, simpy, "itself"))
     if "scale" in parts:
-        small = per_wakeup("clock.sleep", args.tasks, args.big_sleeps, args.seed)
-        big = per_wakeup("clock.sleep", args.big, args.big_sleeps, args.seed)
-        print(f"\nscale: clock.sleep, {args.big_sleeps} sleeps per task")
-        print(f"  {args.tasks:>7,} sleepers{small:>12,.0f}")
-        print(f"  {args.big:>7,} sleepers{big:>12,.0f}   {big / small:.2f}x")
+        k, seed = args.big_sleeps, args.seed
+        print(f"\nscale: clock.sleep, {k} sleeps per task (seed {seed})\n{HEADER}")
+        small = Cost("clock.sleep", args.tasks, k, seed)
+        big = Cost("clock.sleep", args.big, k, seed)
+        print(_row(f"{args.tasks:,} sleepers", small, small, "itself"))
+        print(_row(f"{args.big:,} sleepers", big, small, f"{args.tasks:,} sleepers"))
+    if "kuka" in parts:
+        steps = args.kuka_steps
+        if steps % 6:
+            raise SystemExit("--kuka-steps must be a multiple of 6 (a whole number of ns)")
+        print(
+            f"\nkuka: {steps} physics steps at 240 Hz, per step; throughput ratio = "
+            "synchronous loop's cost / evclock's"
+        )
+        print(f"  {'controller':<12}{'sync instr':>12}{'evclock':>12}{'ratio':>8}{'wall':>8}")
+        for hz in (100.0, 240.0):
+            sync = Cost("kuka sync", 1, steps, args.seed, hz)
+            ev = Cost("kuka evclock", 1, steps, args.seed, hz)
+            if _output(sync.out, "state") != _output(ev.out, "state"):
+                raise SystemExit(f"KUKA at {hz:g} Hz: the final states differ")
+            print(
+                f"  {hz:>7g} Hz  {sync.instr:>12,.0f}{ev.instr:>12,.0f}"
+                f"{sync.instr / ev.instr:>8.3f}{sync.ns / ev.ns:>8.3f}   final state bit-identical"
+            )
     return 0
 
 

@@ -88,6 +88,51 @@ def check_stall_timeout(value: object) -> float | None:
     return seconds
 
 
+class _SimTimer(events.TimerHandle):
+    """asyncio's ``TimerHandle`` (same class for every check, same private fields), built
+    and cancelled in one frame each instead of two: every ``asyncio.sleep`` and every
+    ``asyncio.timeout`` creates and cancels one (measured: benchmarks/instructions.py).
+
+    The fields are asyncio's private ``Handle``/``TimerHandle`` slots; in debug mode the
+    stock constructor runs (it records the creation traceback).
+    """
+
+    __slots__ = ()
+
+    def __init__(
+        self,
+        when: float,
+        callback: Callable[..., object],
+        args: tuple[Any, ...],
+        loop: SimEventLoop,
+        context: contextvars.Context | None = None,
+    ) -> None:
+        if loop._debug:
+            super().__init__(when, callback, args, loop, context)
+            return
+        self._context = context if context is not None else contextvars.copy_context()
+        self._loop = loop
+        self._callback = callback
+        self._args = args
+        self._cancelled = False
+        self._repr = None
+        self._source_traceback = None
+        self._when = when
+        self._scheduled = False
+
+    def cancel(self) -> None:
+        if self._cancelled:
+            return
+        loop: Any = self._loop
+        if self._scheduled:  # still in the kernel's heap: counted there, to purge it
+            loop._core.timer_cancelled()
+        self._cancelled = True
+        if loop._debug:
+            self._repr = repr(self)  # type: ignore[assignment]  # as Handle.cancel (to log the callback afterwards)
+        self._callback = None  # type: ignore[assignment]
+        self._args = None  # type: ignore[assignment]
+
+
 class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     """An asyncio event loop whose clock is simulation time.
 
@@ -168,6 +213,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
         # every callback: answer from C, without a Python frame (set_debug() sets _debug).
         self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
+        # Likewise create_future() (asyncio.sleep, wait_for, ...): BaseEventLoop's is a Python
+        # method returning exactly this.
+        self.create_future = functools.partial(_Future, loop=self)  # type: ignore[method-assign]
         self._source = source
         core.future_loop = self  # waits are possible from now until close()
         # Registered file descriptors, read on every iteration: the selector's own dict when
@@ -238,14 +286,20 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         *args: *_Ts,
         context: contextvars.Context | None = None,
     ) -> asyncio.TimerHandle:
+        # Hot path (every asyncio.sleep and timeout): one frame, no call_at hop (measured
+        # with benchmarks/instructions.py).
         if delay is None:
             raise TypeError("delay must not be None")
         if not -_MAX_TIME_S < delay < _MAX_TIME_S:
             return self.call_at(self.time() + delay, callback, *args, context=context)
-        when_ns = self._core.now_ns + round(delay * 1e9)
-        timer = self._call_at_ns(when_ns, when_ns / 1_000_000_000, callback, args, context)
-        if timer._source_traceback:  # type: ignore[attr-defined]
-            del timer._source_traceback[-1]  # type: ignore[attr-defined]  # debug: our frame
+        if self._closed:
+            self._check_closed()
+        core = self._core
+        when_ns = core.now_ns + round(delay * 1e9)
+        timer = _SimTimer(when_ns / 1_000_000_000, callback, args, self, context)
+        if self._debug:
+            self._check_debug(timer, callback, "call_later")
+        core.call_at(when_ns, timer)
         return timer
 
     def call_at(
@@ -259,12 +313,16 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             raise TypeError("when cannot be None")
         if when != when or when == -math.inf:
             raise InvalidArgumentError(f"call_at() needs a finite time, got {when!r}")
-        if when > _MAX_TIME_S:
-            # "Never" (anyio's sleep_forever, an unbounded CancelScope, a huge delay): beyond
-            # sim time's range, as on stock asyncio a timer that never fires nor moves time.
+        if self._closed:
             self._check_closed()
-            return events.TimerHandle(when, callback, args, self, context)
-        return self._call_at_ns(round(when * 1e9), when, callback, args, context)
+        timer = _SimTimer(when, callback, args, self, context)
+        if self._debug:
+            self._check_debug(timer, callback, "call_at")
+        if when <= _MAX_TIME_S:
+            self._core.call_at(round(when * 1e9), timer)
+        # else "never" (anyio's sleep_forever, an unbounded CancelScope, a huge delay):
+        # beyond sim time's range, as on stock asyncio a timer that never fires nor moves time.
+        return timer
 
     def _call_at_ns(
         self,
@@ -274,22 +332,26 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         args: tuple[Any, ...],
         context: Any,
     ) -> asyncio.TimerHandle:
+        """call_at() at exact integer nanoseconds (``when`` is its float seconds)."""
         if self._closed:
             self._check_closed()
-        timer: Any = events.TimerHandle(when, callback, args, self, context)
+        timer = _SimTimer(when, callback, args, self, context)
         if self._debug:
-            self._check_thread()
-            self._check_callback(callback, "call_at")
-            if timer._source_traceback:
-                del timer._source_traceback[-1]
+            self._check_debug(timer, callback, "call_at")
         self._core.call_at(when_ns, timer)
-        handle: asyncio.TimerHandle = timer
-        return handle
+        return timer
+
+    def _check_debug(self, timer: Any, callback: object, method: str) -> None:
+        self._check_thread()
+        self._check_callback(callback, method)
+        if timer._source_traceback:
+            del timer._source_traceback[-2:]  # debug: the traceback ends in the caller
 
     def _timer_handle_cancelled(self, handle: asyncio.TimerHandle) -> None:
         # asyncio private hook: TimerHandle.cancel() reports a cancellation here (also of a
         # timer that already fired: asyncio.sleep cancels its handle in a finally); the
-        # kernel counts the ones still in its heap, to purge them.
+        # kernel counts the ones still in its heap, to purge them. (_SimTimer.cancel does
+        # the same in its own frame.)
         if handle._scheduled:  # type: ignore[attr-defined]
             self._core.timer_cancelled()
 
