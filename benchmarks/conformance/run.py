@@ -92,7 +92,10 @@ def asyncio_modules() -> list[str]:
 
 def anyio_source() -> Path:
     """The tests of the installed anyio version, from its sdist (downloaded once)."""
-    version = importlib.metadata.version("anyio")
+    try:
+        version = importlib.metadata.version("anyio")
+    except importlib.metadata.PackageNotFoundError:
+        sys.exit("anyio is not installed: pip install -e '.[conformance]' (it pins the version)")
     target = RESULTS / f"anyio-{version}"
     if (target / "tests").is_dir():
         return target
@@ -274,10 +277,33 @@ def read_results(path: Path) -> tuple[dict[str, str], dict[str, str]]:
 # ------------------------------------------------------------------ reporting
 
 
-def load_allowlist() -> dict[str, dict[str, str]]:
+def python_version() -> str:
+    return f"{sys.version_info.major}.{sys.version_info.minor}"
+
+
+def load_allowlist(version: str | None = None) -> dict[str, dict[str, str]]:
+    """Per suite, test id -> reason: the entries of ``[suite]`` plus those of the section
+    ``[suite."3.X"]`` for this Python's version (a test that fails on one Python only)."""
+    version = version or python_version()
     with open(HERE / "allowlist.toml", "rb") as f:
         data = tomllib.load(f)
-    return {suite: dict(data.get(suite, {})) for suite in ("asyncio", "anyio")}
+    allow: dict[str, dict[str, str]] = {}
+    for suite in ("asyncio", "anyio"):
+        section = data.get(suite, {})
+        entries = {test: reason for test, reason in section.items() if isinstance(reason, str)}
+        for key, value in section.items():
+            if isinstance(value, dict):
+                if not (key.count(".") == 1 and key.replace(".", "").isdigit()):
+                    raise SystemExit(
+                        f"allowlist.toml: [{suite}.{key!r}] is not a Python version section; "
+                        f'name per-Python sections [{suite}."3.X"]'
+                    )
+                if key == version:
+                    entries.update(value)
+            elif not isinstance(value, str):
+                raise SystemExit(f"allowlist.toml: [{suite}] {key!r} must map to its reason")
+        allow[suite] = entries
+    return allow
 
 
 def first_line(detail: str) -> str:
@@ -285,8 +311,9 @@ def first_line(detail: str) -> str:
     return lines[-1].strip()[:160] if lines else ""
 
 
-def report(runs: list[ModuleRun], loops: list[str]) -> int:
+def report(runs: list[ModuleRun], loops: list[str], wall: float) -> int:
     allow = load_allowlist()
+    summaries: list[str] = []
     by_key = {(r.suite, r.module, r.loop): r for r in runs}
     suites = sorted({r.suite for r in runs})
     unexpected: list[tuple[str, str, str]] = []
@@ -336,6 +363,7 @@ def report(runs: list[ModuleRun], loops: list[str]) -> int:
                     unexpected.append((suite, test, detail))
                     print(f"  FAIL     {test}  ({got}: {detail})")
         print(f"  {count} test(s) pass only on the default loop")
+        outside = sum(1 for s, _, _ in unexpected if s == suite)
         rerun = [
             test for r in runs if r.suite == suite and r.loop == "sim" for test in r.passed_on_rerun
         ]
@@ -343,6 +371,13 @@ def report(runs: list[ModuleRun], loops: list[str]) -> int:
         for line in rerun:
             print(f"  rerun    {line}")
         print(f"  {len(rerun)} test(s) passed only on the re-run")
+        base_tot = totals.get((suite, "default"), dict.fromkeys(_OUTCOMES, 0))
+        summaries.append(
+            f"conformance {suite} on Python {python_version()}: "
+            f"{'OK' if not outside else 'FAILED'}: {count} sim-only failure(s), "
+            f"{outside} outside the allow-list, of {base_tot['pass']} passing on the default "
+            f"loop; {len(rerun)} passed only on the re-run"
+        )
     if "default" in loops and "sim" in loops:
         stale = [
             (suite, test)
@@ -358,6 +393,10 @@ def report(runs: list[ModuleRun], loops: list[str]) -> int:
             f"\nSimEventLoop conformance: {len(unexpected)} test(s) fail outside the "
             f"allow-list, {len(allowed_seen)} allow-listed"
         )
+    if summaries:
+        print()
+    for line in summaries:
+        print(f"{line} ({wall:.0f} s wall for the run)")
     return 1 if unexpected else 0
 
 
@@ -431,8 +470,9 @@ def main() -> None:
         args.json.write_text(
             json.dumps([dataclasses.asdict(r) for r in runs], indent=1), encoding="utf-8"
         )
-    status = report(runs, ["default", *loops] if reused else loops)
-    print(f"(wall time {time.monotonic() - started:.0f} s, {args.jobs} jobs)")
+    wall = time.monotonic() - started
+    status = report(runs, ["default", *loops] if reused else loops, wall)
+    print(f"(wall time {wall:.0f} s, {args.jobs} jobs)")
     sys.exit(status)
 
 
