@@ -432,6 +432,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 )
         finally:
             self._current_handle = None
+            # Drop the handle with this frame, as asyncio's _run_once does ("handle = None"):
+            # a callback's exception traceback can keep the finished frame alive, and the
+            # frame would keep the handle, its task and the exception in a cycle (a failed
+            # task's "exception was never retrieved" then waits for the cyclic GC).
+            del handle
 
     def _advance(self) -> None:
         """Nothing is runnable now: apply the kernel's rule and wait as it answers."""

@@ -228,3 +228,36 @@ def test_timeout_math_is_exact_for_large_sleep_counts() -> None:
 
     # 10,000 float additions of 0.1 would drift; integer nanoseconds do not.
     assert evclock.run(main()) == 1000 * 10**9
+
+
+@pytest.mark.parametrize("debug", [False, True])
+def test_a_dropped_failed_task_is_reported_at_once(debug: bool) -> None:
+    """As on asyncio (test_futures2.test_task_exc_handler_correct_context): the loop keeps no
+    reference to a handle it ran, so a failed task nobody holds is freed by reference
+    counting and its "exception was never retrieved" reaches the handler right away, in
+    debug mode too (where, on 3.12 and later, the handle used to stay in a cycle through the
+    finished frame that ran it, until the cyclic GC ran)."""
+    import gc
+
+    reported: list[str] = []
+
+    async def fail() -> None:
+        raise ZeroDivisionError
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        loop.set_exception_handler(lambda _loop, context: reported.append(context["message"]))
+        asyncio.ensure_future(fail())  # noqa: RUF006 (the point: nobody holds the task)
+        await asyncio.sleep(0)
+        assert reported == ["Task exception was never retrieved"]
+
+    gc.disable()  # only reference counting may free the task
+    try:
+        loop = evclock.SimEventLoop()
+        loop.set_debug(debug)
+        try:
+            loop.run_until_complete(main())
+        finally:
+            loop.close()
+    finally:
+        gc.enable()

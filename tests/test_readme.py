@@ -77,7 +77,10 @@ def test_set_up_commands_fit_a_user_and_match_ci() -> None:
     assert tests == '.venv/bin/pip install -e ".[test]" && .venv/bin/python -m pytest'
     ci = (README.parent / ".ci" / "run").read_text()
     assert 'pip install --quiet -e ".[$3]"' in ci
-    assert 'fresh_venv .venv "$PY311" test,lint\n' in ci
+    assert 'fresh_venv .venv "$PY311" test,lint,conformance\n' in ci
     assert 'fresh_venv ".venv-$version" "${!python_var}" test\n' in ci
     assert '".venv-$version/bin/python" -m pytest\n' in ci
+    # Conformance: test_asyncio on every supported Python, anyio's suite too on 3.11.
+    assert 'conformance ".venv-$version" asyncio\n' in ci
+    assert "conformance .venv all\n" in ci
     assert ci.rstrip().endswith(".venv/bin/python -m pytest")

@@ -6,7 +6,8 @@ loop class asyncio hands out, so that the suites run unmodified:
 * ``asyncio.new_event_loop()``, ``asyncio.run()`` and ``asyncio.Runner()`` go through the
   default event-loop policy, whose loop factory becomes ``SimEventLoop``;
 * tests that build ``asyncio.SelectorEventLoop(selector)`` directly get a ``SimEventLoop``
-  on that selector (it takes a selector as its first positional argument for this reason).
+  on that selector (it takes a selector as its first positional argument for this reason);
+  so do those that pass ``asyncio.EventLoop`` (3.13) as a loop factory.
 
 The policy class attribute is patched rather than a policy installed, because test_asyncio
 resets the policy (``set_event_loop_policy(None)``) after almost every test.
@@ -36,6 +37,10 @@ def install_if_requested() -> str:
             import asyncio.unix_events as unix_events
 
             unix_events.SelectorEventLoop = evclock.SimEventLoop  # type: ignore[misc]
+            if hasattr(unix_events, "EventLoop"):  # 3.13: the platform's default loop class
+                unix_events.EventLoop = evclock.SimEventLoop
+        if hasattr(asyncio, "EventLoop"):  # 3.13: asyncio.EventLoop, e.g. as a loop_factory
+            asyncio.EventLoop = evclock.SimEventLoop
             unix_events._UnixDefaultEventLoopPolicy._loop_factory = evclock.SimEventLoop  # type: ignore[attr-defined]
     elif which != "default":
         raise SystemExit(f"{LOOP_ENV} must be 'default' or 'sim', got {which!r}")
