@@ -149,6 +149,9 @@ class SimService:
         self._episode: Episode | None = None
         self._finished: collections.deque[Episode] = collections.deque(maxlen=_EPISODES_KEPT)
         self._history: collections.deque[Sample] = collections.deque(maxlen=config.history_size)
+        #: Every loop ever sampled, in first-seen order: the plot's series outlive the samples
+        #: and the episodes that had them (a series never disappears between two polls).
+        self._series: dict[str, None] = {}
         self._last_counts: dict[Rate, tuple[int, int]] = {}
         self._achieved_rtf: float | None = None
         self._steps_before_reset = 0
@@ -323,11 +326,12 @@ class SimService:
         self._last_counts = counts
         sample = Sample(time.time(), driver.now().seconds, self._achieved_rtf, driver.rtf, lateness)
         self._history.append(sample)
+        self._series.update(dict.fromkeys(lateness))
 
     def history(self) -> dict[str, Any]:
         """The sampled history as columns (uPlot's layout): one list per series."""
         samples = list(self._history)
-        names = list(dict.fromkeys(name for s in samples for name in s.lateness_ms))
+        names = list(self._series)
         return {
             "wall_s": [s.wall for s in samples],
             "sim_time_s": [s.sim for s in samples],
