@@ -288,7 +288,7 @@ class _KernelView:
     def forget_except(self, alive: set[int]) -> None:
         for native_id in [n for n in self._files if n not in alive]:
             self._runs.pop(native_id, None)
-            for fd in self._files.pop(native_id):
+            for fd in self._files.pop(native_id, ()):
                 os.close(fd)
 
 
@@ -383,6 +383,16 @@ def survey(loop_thread_id: int | None) -> list[tuple[threading.Thread, ThreadSta
     exactly: :meth:`_KernelView.unchanged`); only the others are read again.
     """
     threads = other_threads(loop_thread_id)
+    # Two simulation loops in two threads survey at once: one at a time, as the tables
+    # below (and the kernel view's open files) are shared.
+    with _survey_lock:
+        return _survey(threads)
+
+
+_survey_lock = threading.Lock()
+
+
+def _survey(threads: list[threading.Thread]) -> list[tuple[threading.Thread, ThreadState]]:
     _unchanged.clear()
     if not threads:
         return []
@@ -431,11 +441,13 @@ def wait_deadline(thread: threading.Thread) -> float | None:
     deadline may be late, never early (time is held a little longer, never too little).
     """
     ident = thread.ident or 0
-    if ident in _unchanged and ident in _deadline_read:
-        return _deadline_read[ident]  # not run since: still in the same wait
+    with _survey_lock:
+        if ident in _unchanged and ident in _deadline_read:
+            return _deadline_read[ident]  # not run since: still in the same wait
     deadline = _wait_deadline(thread, ident)
     if deadline is not None:
-        _deadline_read[ident] = deadline
+        with _survey_lock:
+            _deadline_read[ident] = deadline
     return deadline
 
 
