@@ -25,6 +25,7 @@ import contextvars
 import functools
 import math
 import operator
+import select
 import selectors
 import threading
 import time
@@ -222,6 +223,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # it exposes one (all stdlib selectors do), else its public mapping view. The
         # self-pipe is always registered, so "real I/O" means more than one entry.
         self._io_map: Any = getattr(self._selector, "_fd_to_key", None) or self._selector.get_map()
+        # OUTSIDE HOOK: epoll does not run a tty's pending input work (_hand_over_tty_input).
+        self._epoll = isinstance(self._selector, getattr(selectors, "EpollSelector", ()))
         if paused:
             core.pacer.pause()
         self._fast_path = False
@@ -526,18 +529,32 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._holder = None  # EXTERNAL-SOURCE HOOK: nothing outside but the source
             return False
         holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
-        if holder is None:
-            # Bytes that arrived since this iteration polled (a peer thread's reply, just
-            # delivered while the thread went back to waiting) are handled before time
-            # moves: the kernel finds them ready and does not advance.
-            if len(self._io_map) > self._quiet_fds:
-                self._poll_io(0)
-            return False
-        horizon = self._outside.horizon_ns
-        if horizon is None:
-            return True
-        target = self._core.next_deadline()
-        return target is None or target - self._core.now_ns > horizon
+        if holder is not None:
+            horizon = self._outside.horizon_ns
+            if horizon is None:
+                return True
+            target = self._core.next_deadline()
+            if target is None or target - self._core.now_ns > horizon:
+                return True
+        # Time may move. Bytes that arrived since this iteration polled (a peer thread's
+        # reply, just delivered while the thread went back to waiting) are handled first:
+        # the kernel finds them ready and does not advance.
+        if len(self._io_map) > self._quiet_fds:
+            if self._epoll:
+                self._hand_over_tty_input()
+            self._poll_io(0)
+        return False
+
+    def _hand_over_tty_input(self) -> None:
+        """Bytes written to a terminal the loop reads (a pty) reach its read queue through
+        the kernel's tty work queue, a moment after the write; epoll does not see them
+        until that work has run, but ``poll()`` on the descriptor runs it at once (Linux's
+        line discipline flushes pending input when polled). So the registered descriptors
+        are polled once before time moves: exact, and what was written is read now."""
+        poller = select.poll()
+        for fd in list(self._io_map):
+            poller.register(fd, select.POLLIN)
+        poller.poll(0)
 
     def could_wake(self) -> bool:
         """Could anything outside wake a task with nothing scheduled? (I/O, signal

@@ -497,6 +497,44 @@ async def _deliver(loop: asyncio.AbstractEventLoop, fut: asyncio.Future[int]) ->
 # ------------------------------------------------------------- bounds and errors
 
 
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="Linux's tty work queue")
+@pytest.mark.parametrize("reader", ["master", "raw slave"])
+def test_bytes_written_to_a_pty_are_read_before_sim_time_moves(reader: str) -> None:
+    # A pty hands written bytes to the other end through the kernel's tty work queue, a
+    # moment later, and epoll does not see them until that work has run: a loop that only
+    # asked epoll would jump to the 1 s timeout. Each of many writes is read at once.
+    async def main() -> list[float]:
+        loop = asyncio.get_running_loop()
+        master, slave = os.openpty()
+        if reader == "master":
+            read_fd, write_fd = master, slave
+        else:
+            import tty
+
+            tty.setraw(slave)  # no line buffering: every byte is input at once
+            read_fd, write_fd = slave, master
+        got: asyncio.Queue[bytes] = asyncio.Queue()
+
+        class Reader(asyncio.Protocol):
+            def data_received(self, data: bytes) -> None:
+                got.put_nowait(data)
+
+        transport, _ = await loop.connect_read_pipe(Reader, os.fdopen(read_fd, "rb", 0))
+        waited = []
+        try:
+            for _ in range(100):
+                os.write(write_fd, b"x")
+                start = loop.time()
+                assert await asyncio.wait_for(got.get(), 1.0) == b"x"
+                waited.append(loop.time() - start)
+        finally:
+            transport.close()
+            os.close(write_fd)
+        return waited
+
+    assert evclock.run(main()) == [0.0] * 100
+
+
 def test_stall_timeout_bounds_waiting_for_io_that_never_comes() -> None:
     a, b = socket.socketpair()
 
