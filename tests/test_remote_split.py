@@ -102,6 +102,20 @@ def test_remote_controllers_needs_serve() -> None:
     assert "error: --remote-controllers needs --serve ADDR" in output
 
 
+@pytest.mark.parametrize(
+    ("clock", "says"),
+    [
+        ("ros2:///clock", "got 'ros2:///clock': only an evclock clock server runs"),
+        ("tcp://127.0.0.1", "a tcp clock address is tcp://HOST:PORT"),
+    ],
+)
+def test_control_needs_an_evclock_clock_server_address(clock: str, says: str) -> None:
+    code, output = wait(evclock_cli("control", "kuka", "--clock", clock))
+    assert code == 2
+    assert "error: " in output
+    assert says in " ".join(output.split())
+
+
 @pytest.mark.pybullet
 def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
     address = f"unix://{tmp_path / 'sim.sock'}"

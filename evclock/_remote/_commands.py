@@ -25,6 +25,7 @@ from .._errors import EvClockError, InvalidArgumentError
 from .._extras import import_extra
 from .._loop import SimEventLoop
 from .._runner import run as evclock_run
+from ._address import parse_address
 from ._participant import participant
 from ._physics import PhysicsService, RemotePhysics
 from ._server import DEFAULT_STEP_TIMEOUT, Message, serve
@@ -148,6 +149,15 @@ def control_scenario(
     """Run scenario ``name``'s controllers against the simulation served at ``clock_url``."""
     from .._runs import RunReport, _loop_reports, scenario_class
 
+    scheme = urllib.parse.urlsplit(clock_url).scheme if isinstance(clock_url, str) else None
+    if scheme not in ("unix", "tcp"):
+        raise InvalidArgumentError(
+            f"evclock control joins a simulation served by `evclock run SIM --serve ADDR "
+            f"--remote-controllers` (unix:///path/sim.sock or tcp://127.0.0.1:PORT), got "
+            f"{clock_url!r}: only an evclock clock server runs the scenario's physics for its "
+            "controllers in lockstep"
+        )
+    parse_address(clock_url)  # the address's own errors, before anything is built
     cls = scenario_class(name, {})
     p = import_extra("pybullet", "pybullet", needed_by="evclock control")
     limit = _limit(cls, until)
