@@ -82,6 +82,8 @@ _Future = asyncio.Future
 # resolve the sleep's future exactly as the handle would (asyncio private, no public name).
 _SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
 _deadline = operator.itemgetter(0)
+_heappush = heapq.heappush
+_heappop = heapq.heappop
 #: Purge cancelled timers from the heap once they are this many and half of it.
 _PURGE_AT: Final = 64
 
@@ -106,7 +108,7 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
     loop = core.future_loop
     fut = _Future(loop=loop) if loop is not None else core.future_factory()
     if core._at.setdefault(when, fut) is fut:
-        heapq.heappush(core._heap, when)
+        _heappush(core._heap, when)
     else:
         core._add(when, fut)
     if when < core.notify_before:
@@ -126,7 +128,7 @@ def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
     loop = core.future_loop
     fut = _Future(loop=loop) if loop is not None else core.future_factory()
     if core._at.setdefault(when_ns, fut) is fut:
-        heapq.heappush(core._heap, when_ns)
+        _heappush(core._heap, when_ns)
     else:
         core._add(when_ns, fut)
     if when_ns < core.notify_before:
@@ -489,9 +491,14 @@ class SimCore:
             if type(obj) is _Future:
                 if not obj.done():
                     break
+            elif isinstance(obj, _TimerHandle):
+                if not obj._cancelled:
+                    break
+                obj._scheduled = False
+                self._cancelled_timers -= 1
             elif not self._dead(obj):
                 break
-            heapq.heappop(heap)
+            _heappop(heap)
             del at[when]
         else:
             return False
@@ -510,20 +517,21 @@ class SimCore:
                 if when > now:
                     return True  # a stepping source returns in chunks on long advances
                 obj = at[when]
-        heapq.heappop(heap)
+        _heappop(heap)
         del at[when]
         if type(obj) is not _Bucket and (not heap or heap[0] > now):  # alone and due
             if type(obj) is _Future:
                 fut, result = obj, None
+            elif isinstance(obj, _TimerHandle):
+                if obj._callback is _SET_RESULT_UNLESS_CANCELLED:
+                    obj._scheduled = False
+                    fut, result = obj._args  # asyncio.sleep's future
+                else:
+                    fut = None
             elif obj is _STOP:
                 fut = None
-            elif not isinstance(obj, _TimerHandle):
-                fut, result = obj, None
-            elif obj._callback is _SET_RESULT_UNLESS_CANCELLED:
-                obj._scheduled = False
-                fut, result = obj._args  # asyncio.sleep's future
             else:
-                fut = None
+                fut, result = obj, None  # a future of another type (a foreign loop's)
             if fut is not None and not fut.done():
                 callbacks = fut._callbacks
                 if len(callbacks) == 1 and type(fut) is _Future:  # one task waits: inline
