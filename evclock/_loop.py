@@ -23,6 +23,7 @@ import concurrent.futures
 import contextlib
 import contextvars
 import functools
+import heapq
 import math
 import operator
 import select
@@ -89,6 +90,10 @@ def check_stall_timeout(value: object) -> float | None:
     return seconds
 
 
+_copy_context = contextvars.copy_context
+_heappush = heapq.heappush
+
+
 class _SimTimer(events.TimerHandle):
     """asyncio's ``TimerHandle`` (same class for every check, same private fields), built
     and cancelled in one frame each instead of two: every ``asyncio.sleep`` and every
@@ -132,6 +137,9 @@ class _SimTimer(events.TimerHandle):
             self._repr = repr(self)  # type: ignore[assignment]  # as Handle.cancel (to log the callback afterwards)
         self._callback = None  # type: ignore[assignment]
         self._args = None  # type: ignore[assignment]
+
+
+_new_timer = object.__new__  # a _SimTimer whose slots call_later() fills
 
 
 class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
@@ -299,10 +307,30 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._check_closed()
         core = self._core
         when_ns = core.now_ns + round(delay * 1e9)
-        timer = _SimTimer(when_ns / 1_000_000_000, callback, args, self, context)
         if self._debug:
+            timer = _SimTimer(when_ns / 1_000_000_000, callback, args, self, context)
             self._check_debug(timer, callback, "call_later")
-        core.call_at(when_ns, timer)
+            core.call_at(when_ns, timer)
+            return timer
+        # _SimTimer.__init__ and SimCore.call_at, inlined (two frames fewer on every
+        # asyncio.sleep and timeout): asyncio's private Handle/TimerHandle slots, as there.
+        timer = _new_timer(_SimTimer)
+        timer._context = context if context is not None else _copy_context()
+        timer._loop = self
+        timer._callback = callback
+        timer._args = args
+        timer._cancelled = False
+        timer._repr = None
+        timer._source_traceback = None
+        timer._when = when_ns / 1_000_000_000
+        if when_ns > MAX_TIME_NS:
+            timer._scheduled = False  # beyond sim time's range: never (as SimCore.call_at)
+        else:
+            timer._scheduled = True
+            if core._at.setdefault(when_ns, timer) is timer:  # the kernel's (SimCore.call_at)
+                _heappush(core._heap, when_ns)
+            else:
+                core._add(when_ns, timer)
         return timer
 
     def call_at(
