@@ -8,6 +8,12 @@ Measured in one run, each against a baseline of the same run:
 
 * **ping-pong**: a bare blocking round trip between two Python processes over a Unix
   socketpair (send 9 bytes, answer 17): the floor of any lockstep round between processes.
+* **asyncio floor**: the same exchange with no evclock at all, shaped like a lockstep round
+  of this design: one process answers in a stock asyncio loop's reader callback (the
+  server), the other wakes a stock asyncio task per round through a future its reader
+  callback resolves, and the task sends (the participant's ``await clock.sleep``). What a
+  round costs in asyncio alone, before evclock does any work: the ceiling of any design
+  in which the participant is an asyncio task.
 * **lockstep rounds/s** with N participant processes over a Unix socket: the simulation
   (virtual time) serves; each participant sleeps 1 ms of sim time ``--rounds`` times, so
   every round grants all N and waits for all N DONEs. Reported as rounds per wall second and
@@ -36,6 +42,7 @@ figure; the ratios to the same-run baselines are the comparable numbers.
 from __future__ import annotations
 
 import argparse
+import asyncio
 import json
 import os
 import socket
@@ -120,6 +127,71 @@ def ping_pong(rounds: int) -> float:
     os.waitpid(pid, 0)
     a.close()
     return rounds / elapsed
+
+
+def asyncio_floor(rounds: int) -> tuple[float, float, float]:
+    """Rounds per second of the asyncio-only floor, and the CPU microseconds per round of
+    the answering side (a reader callback) and of the task side."""
+
+    def answer(sock: socket.socket) -> None:  # the server: a reader callback answers
+        loop = asyncio.new_event_loop()
+        finished = loop.create_future()
+        seen = 0
+
+        def on_readable() -> None:
+            nonlocal seen
+            sock.recv(64)
+            seen += 1
+            sock.send(b"g" * 9)
+            if seen == rounds:
+                loop.remove_reader(sock)
+                finished.set_result(None)
+
+        loop.add_reader(sock, on_readable)
+        loop.run_until_complete(finished)
+        loop.close()
+
+    def work(sock: socket.socket) -> None:  # the participant: a task woken per round
+        loop = asyncio.new_event_loop()
+        waiter: list[asyncio.Future[None]] = []
+
+        def on_readable() -> None:
+            sock.recv(64)
+            if waiter and not waiter[0].done():
+                waiter[0].set_result(None)
+
+        async def main() -> None:
+            loop.add_reader(sock, on_readable)
+            for _ in range(rounds):  # tell DONE, wait for the next grant
+                waiter[:] = [loop.create_future()]
+                sock.send(b"d" * 17)
+                await waiter[0]
+            loop.remove_reader(sock)
+
+        loop.run_until_complete(main())
+        loop.close()
+
+    a, b = socket.socketpair()
+    a.setblocking(False)
+    b.setblocking(False)
+    report_r, report_w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        a.close()
+        cpu0 = time.process_time()
+        answer(b)
+        os.write(report_w, str(time.process_time() - cpu0).encode())
+        os._exit(0)
+    b.close()
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    work(a)
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    os.waitpid(pid, 0)
+    server_cpu = float(os.read(report_r, 64))
+    for fd in (report_r, report_w):
+        os.close(fd)
+    a.close()
+    return rounds / wall, server_cpu / rounds * 1e6, cpu / rounds * 1e6
 
 
 def lockstep(
@@ -238,6 +310,11 @@ def main() -> None:
         for _ in range(args.repeat):
             best = results.get("ping_pong_round_trips_per_s", 0.0)
             results["ping_pong_round_trips_per_s"] = max(best, ping_pong(args.rounds * 4))
+            rate, server_us, participant_us = asyncio_floor(args.rounds * 4)
+            if rate > results.get("asyncio_floor_rounds_per_s", 0.0):
+                results["asyncio_floor_rounds_per_s"] = rate
+                results["asyncio_floor_server_cpu_us"] = server_us
+                results["asyncio_floor_participant_cpu_us"] = participant_us
             for name, active, idle in variants:
                 for prefix, root in checkouts:
                     key = prefix + name
@@ -257,6 +334,13 @@ def main() -> None:
                         results[f"{prefix}kuka_split_ratio"] = split / inproc
     base = results["ping_pong_round_trips_per_s"]
     print(f"baseline ping-pong (2 processes, blocking): {base:,.0f} round trips/s")
+    floor = results["asyncio_floor_rounds_per_s"]
+    print(
+        f"asyncio floor (no evclock: a reader callback answers, a task is woken per round): "
+        f"{floor:,.0f} rounds/s ({floor / base:.2f} x ping-pong); CPU per round: answering "
+        f"side {results['asyncio_floor_server_cpu_us']:.0f} us, task side "
+        f"{results['asyncio_floor_participant_cpu_us']:.0f} us"
+    )
     for prefix, root in checkouts:
         print(f"\n{root}:")
         for name, active, idle in variants:

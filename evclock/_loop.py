@@ -233,6 +233,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._io_map: Any = getattr(self._selector, "_fd_to_key", None) or self._selector.get_map()
         # OUTSIDE HOOK: epoll does not run a tty's pending input work (_hand_over_tty_input).
         self._epoll = isinstance(self._selector, getattr(selectors, "EpollSelector", ()))
+        # asyncio private: BaseSelectorEventLoop._ssock, the self-pipe's read end (a socket,
+        # never a terminal: _hand_over_tty_input need not poll it).
+        self._self_pipe_fd: int = self._ssock.fileno()  # type: ignore[attr-defined]
         if paused:
             core.pacer.pause()
         self._fast_path = False
@@ -578,9 +581,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         the kernel's tty work queue, a moment after the write; epoll does not see them
         until that work has run, but ``poll()`` on the descriptor runs it at once (Linux's
         line discipline flushes pending input when polled). So the registered descriptors
-        are polled once before time moves: exact, and what was written is read now."""
+        are polled once before time moves: exact, and what was written is read now.
+
+        Only descriptors that can be a terminal are polled: not the self-pipe, nor the
+        sockets whose owner accounts for their traffic exactly (``_account_fd``: a clock
+        server's connections and listener); with none left, no system call at all."""
+        accounted, self_pipe = self._accounted_fds, self._self_pipe_fd
+        fds = [fd for fd in self._io_map if fd != self_pipe and fd not in accounted]
+        if not fds:
+            return
         poller = select.poll()
-        for fd in list(self._io_map):
+        for fd in fds:
             poller.register(fd, select.POLLIN)
         poller.poll(0)
 
