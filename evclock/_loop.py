@@ -236,6 +236,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # asyncio private: BaseSelectorEventLoop._ssock, the self-pipe's read end (a socket,
         # never a terminal: _hand_over_tty_input need not poll it).
         self._self_pipe_fd: int = self._ssock.fileno()  # type: ignore[attr-defined]
+        # _hand_over_tty_input's poll object (None: nothing to poll) and the registered fds
+        # it was built for (None: rebuild): rebuilt only when those change.
+        self._tty_poller: Any = None
+        self._tty_built_for: set[Any] | None = None  # compared whole, never iterated
         if paused:
             core.pacer.pause()
         self._fast_path = False
@@ -541,6 +545,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             self._accounted_fds.add(fd)
         else:
             self._accounted_fds.discard(fd)
+        self._tty_built_for = None  # _hand_over_tty_input polls a different set now
 
     # ------------------------------------------------ what the kernel asks the loop
 
@@ -585,15 +590,24 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
         Only descriptors that can be a terminal are polled: not the self-pipe, nor the
         sockets whose owner accounts for their traffic exactly (``_account_fd``: a clock
-        server's connections and listener); with none left, no system call at all."""
-        accounted, self_pipe = self._accounted_fds, self._self_pipe_fd
-        fds = [fd for fd in self._io_map if fd != self_pipe and fd not in accounted]
-        if not fds:
-            return
-        poller = select.poll()
-        for fd in fds:
-            poller.register(fd, select.POLLIN)
-        poller.poll(0)
+        server's connections and listener); with none left, no system call at all.
+
+        This runs before every advance with I/O registered, so the poll object is kept and
+        rebuilt only when the registered descriptors (or the accounted ones) change: poll()
+        registers fd numbers, so a reused number polls whatever it now is, as the selector
+        does. An unchanged advance makes one system call and allocates nothing."""
+        registered = self._io_map.keys()
+        if registered != self._tty_built_for:
+            accounted, self_pipe = self._accounted_fds, self._self_pipe_fd
+            fds = [fd for fd in registered if fd != self_pipe and fd not in accounted]
+            poller: Any = None
+            if fds:
+                poller = select.poll()
+                for fd in fds:
+                    poller.register(fd, select.POLLIN)
+            self._tty_poller, self._tty_built_for = poller, set(registered)
+        if self._tty_poller is not None:
+            self._tty_poller.poll(0)
 
     def could_wake(self) -> bool:
         """Could anything outside wake a task with nothing scheduled? (I/O, signal

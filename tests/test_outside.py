@@ -505,6 +505,11 @@ def test_bytes_written_to_a_pty_are_read_before_sim_time_moves(reader: str) -> N
     # asked epoll would jump to the 1 s timeout. Each of many writes is read at once.
     async def main() -> list[float]:
         loop = asyncio.get_running_loop()
+        # Other I/O first, and time moving with it registered: the pty registered later is
+        # handed over too (what the loop polls follows what is registered).
+        other, peer = socket.socketpair()
+        loop.add_reader(other, lambda: None)
+        await asyncio.sleep(0.001)
         master, slave = os.openpty()
         if reader == "master":
             read_fd, write_fd = master, slave
@@ -530,6 +535,9 @@ def test_bytes_written_to_a_pty_are_read_before_sim_time_moves(reader: str) -> N
         finally:
             transport.close()
             os.close(write_fd)
+            loop.remove_reader(other)
+            other.close()
+            peer.close()
         return waited
 
     assert evclock.run(main()) == [0.0] * 100
