@@ -105,16 +105,40 @@ def liveliness_keys(session: Any) -> list[str]:
     return sorted(str(reply.ok.key_expr) for reply in replies if reply.ok is not None)
 
 
+class Withdrawals:
+    """The liveliness tokens a session sees withdrawn.
+
+    A withdrawal reaches the other sessions of the graph a moment after the withdrawing
+    session's ``close()`` returns (Zenoh routes it asynchronously): a test waits for the
+    DELETE samples themselves, with a bound, instead of querying at once."""
+
+    def __init__(self, session: Any) -> None:
+        self._sub = session.liveliness().declare_subscriber(
+            "@ros2_lv/0/**", zenoh.handlers.FifoChannel(256)
+        )
+
+    def wait_for(self, keys: list[str]) -> None:
+        pending = list(keys)
+        deadline = time.monotonic() + WAIT
+        while pending:
+            sample = self._sub.handler.try_recv()
+            if sample is None:
+                assert time.monotonic() < deadline, f"tokens never withdrawn: {pending}"
+                time.sleep(0.001)
+            elif sample.kind == zenoh.SampleKind.DELETE and str(sample.key_expr) in pending:
+                pending.remove(str(sample.key_expr))
+        self._sub.undeclare()
+
+
 # ------------------------------------------------------------------------------- publisher
 
 
 def test_publisher_sends_rmw_zenoh_samples_and_tokens(endpoint: str) -> None:
     stamps = iter(range(1_700_000_000_000_000_000, 1_800_000_000_000_000_000, 1000))
-    with Ros2ClockPublisher(
-        connect=[], listen=[endpoint], wall_clock_ns=lambda: next(stamps)
-    ) as pub:
-        peer = raw_session(connect=[endpoint], listen=[])
-        try:
+    pub = Ros2ClockPublisher(connect=[], listen=[endpoint], wall_clock_ns=lambda: next(stamps))
+    peer = raw_session(connect=[endpoint], listen=[])
+    try:
+        with pub:
             received = Received(peer, "0/clock/**")
             received.routed_after(lambda: pub.publish(0))
             warmup = pub.sequence_number
@@ -123,9 +147,11 @@ def test_publisher_sends_rmw_zenoh_samples_and_tokens(endpoint: str) -> None:
             for expected_ns in (1 * S + 500, 2 * S + 7):
                 key, payload, attachment = received.next()
                 assert key == KEY == pub.key_expr
-                assert payload == b"\x00\x01\x00\x00" + (expected_ns // S).to_bytes(4, "little") + (
-                    expected_ns % S
-                ).to_bytes(4, "little")
+                sec, nanosec = divmod(expected_ns, S)
+                cdr_header = b"\x00\x01\x00\x00"
+                assert payload == cdr_header + sec.to_bytes(4, "little") + nanosec.to_bytes(
+                    4, "little"
+                )
                 assert attachment is not None
                 seq, stamp, gid = z_deserialize(
                     tuple[Int64, Int64, bytes], zenoh.ZBytes(attachment)
@@ -144,10 +170,12 @@ def test_publisher_sends_rmw_zenoh_samples_and_tokens(endpoint: str) -> None:
                 for t in tokens
             )
             received.close()
-        finally:
-            pub.close()
-            assert liveliness_keys(peer) == []  # closing withdrew the node and its publisher
-            peer.close()
+            withdrawals = Withdrawals(peer)
+        withdrawals.wait_for(tokens)  # closing withdrew the node and its publisher
+        assert liveliness_keys(peer) == []
+    finally:
+        pub.close()
+        peer.close()
 
 
 @pytest.mark.pybullet
@@ -292,14 +320,17 @@ def test_follower_declares_itself_in_the_ros_graph(endpoint: str, outside: Any) 
     source = start_follower(endpoint, Feed(outside), 0)
     try:
         tokens = liveliness_keys(outside)
+        assert len(tokens) == 2
         assert any(t.endswith("/NN/%/%/evclock_follower") for t in tokens)
         assert any(
             f"/MS/%/%/evclock_follower/%clock/rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}"
             in t
             for t in tokens
         )
+        withdrawals = Withdrawals(outside)
     finally:
         source.close()
+    withdrawals.wait_for(tokens)  # closing withdrew the node and its subscription
     assert liveliness_keys(outside) == []
 
 
