@@ -372,7 +372,7 @@ def test_silent_publisher_is_reported(endpoint: str, outside: Any) -> None:
     async def main() -> None:
         await evclock.clock().sleep(1)
 
-    with pytest.raises(ClockLost, match=r"no /clock message for 0\.\d s of wall time") as info:
+    with pytest.raises(ClockLost, match=r"no /clock message for \d+\.\d s of wall time") as info:
         evclock.run(main(), source=source)
     assert "raise silence_timeout (now 0.3 s) or pass None" in str(info.value)
 

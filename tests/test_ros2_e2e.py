@@ -152,14 +152,19 @@ def test_cli_publishes_clock_with_decimation(folder: str) -> None:
         )
         assert run.returncode == 3, run.stderr  # 3: cut short by --until (no verdict)
         assert f"publishing /clock every 24 steps on {key} (jazzy wire format)" in run.stdout
-        stamps = []
+        expected = [k * 100_000_000 for k in range(11)]  # 0 .. 1 s, every 0.1 s
+        # The publisher has exited, but its last samples may still be on their way through
+        # this session's receive thread: wait for them (bounded), then for nothing more.
+        stamps: list[int] = []
         deadline = time.monotonic() + TIMEOUT
-        while time.monotonic() < deadline:
+        while len(stamps) < len(expected) and time.monotonic() < deadline:
             sample = subscriber.handler.try_recv()
             if sample is None:
-                break  # the publisher has exited: everything it sent has arrived
-            stamps.append(decode_clock(sample.payload.to_bytes()))
-        assert stamps == [k * 100_000_000 for k in range(11)]  # 0 .. 1 s, every 0.1 s
+                time.sleep(0.001)
+            else:
+                stamps.append(decode_clock(sample.payload.to_bytes()))
+        assert stamps == expected
+        assert subscriber.handler.try_recv() is None
     finally:
         session.close()
 

@@ -58,7 +58,10 @@ class Fragile(CartPole):
         if seed == 2:
             raise RuntimeError("boom at seed 2")
         if seed >= 5 and self.marker_dir:
-            Path(self.marker_dir, f"started-{seed}").write_text(str(os.getpid()))
+            # Written whole, then renamed: a reader never sees the file empty.
+            part = Path(self.marker_dir, f".started-{seed}.part")
+            part.write_text(str(os.getpid()))
+            os.replace(part, Path(self.marker_dir, f"started-{seed}"))
             time.sleep(600)  # held until the sweep is interrupted
         super().__init__(client, seed)
 """
@@ -257,15 +260,17 @@ def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_pat
     out = tmp_path / "sweep.json"
     markers = tmp_path / "markers"
     markers.mkdir()
+    # Seed 0 finishes well inside 10 s even on a loaded machine (start-up and PyBullet
+    # included); seed 5 sleeps 600 s.
     result = runner.invoke(
         app,
         ["sweep", fragile, "--seeds", "0,5", "--param", f"marker_dir={markers}",
-         "--run-timeout", "3", "--workers", "2", "--json", str(out), "--quiet"],
+         "--run-timeout", "10", "--workers", "2", "--json", str(out), "--quiet"],
     )  # fmt: skip
     assert result.exit_code == 1, result.output
     rows = _rows_by_seed(out)
     assert rows[0]["status"] == "success"
-    assert rows[5]["error"] == "timed out after 3 s of wall time (--run-timeout); stopped"
+    assert rows[5]["error"] == "timed out after 10 s of wall time (--run-timeout); stopped"
     worker = int((markers / "started-5").read_text())
     deadline = time.monotonic() + 30
     while not _gone(worker) and time.monotonic() < deadline:
