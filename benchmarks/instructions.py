@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import heapq
 import math
 import os
 import random
@@ -90,6 +91,68 @@ def asyncio_sleep0(rows: list[list[float]]) -> None:
         await asyncio.gather(*(worker(row) for row in rows))
 
     asyncio.run(main())
+
+
+def future_wake_minimal(rows: list[list[float]]) -> None:
+    """The least a future-based sleep can cost: each task parks on a C ``asyncio.Future``; a
+    plain function pops the earliest int deadline (a heap of distinct deadlines with what is
+    due beside it, as the kernel's), resolves the future and runs the task's wake-up in place.
+    No event-loop iteration, no time source, no validation: a bound on any design of
+    evclock's shape, not a scheduler."""
+    loop = asyncio.new_event_loop()
+    heap: list[int] = []
+    at: dict[int, Any] = {}
+    now = [0]
+    heappush, heappop = heapq.heappush, heapq.heappop
+
+    def sleep(seconds: float) -> asyncio.Future[None]:
+        fut: asyncio.Future[None] = asyncio.Future(loop=loop)
+        when = now[0] + round(seconds * 1e9)
+        present = at.setdefault(when, fut)
+        if present is fut:
+            heappush(heap, when)
+        elif type(present) is list:
+            present.append(fut)
+        else:
+            at[when] = [present, fut]
+        return fut
+
+    def wake(fut: asyncio.Future[None]) -> None:
+        ((callback, ctx),) = fut._callbacks  # type: ignore[attr-defined]
+        fut.remove_done_callback(callback)
+        fut.set_result(None)
+        ctx.run(callback, fut)
+
+    async def worker(durations: list[float]) -> None:
+        for d in durations:
+            await sleep(d)
+
+    def drive() -> None:
+        pop = at.pop
+        while heap:
+            now[0] = when = heappop(heap)
+            entry = pop(when)
+            if type(entry) is list:
+                for fut in entry:
+                    wake(fut)
+                continue
+            ((callback, ctx),) = entry._callbacks
+            entry.remove_done_callback(callback)
+            entry.set_result(None)
+            ctx.run(callback, entry)
+
+    async def start() -> list[asyncio.Task[None]]:
+        tasks = [loop.create_task(worker(row)) for row in rows]
+        await asyncio.sleep(0)  # every task runs to its first wait
+        return tasks
+
+    try:
+        tasks = loop.run_until_complete(start())
+        drive()
+        for task in tasks:
+            task.result()  # each ran to its end
+    finally:
+        loop.close()
 
 
 def simpy_timeout(rows: list[list[float]]) -> None:
@@ -226,6 +289,7 @@ VARIANTS: dict[str, Callable[[list[list[float]]], None]] = {
     "asyncio.sleep (sim loop)": asyncio_sleep_sim,
     "asyncio.sleep(0) (stock loop)": asyncio_sleep0,
     "simpy timeout": simpy_timeout,
+    "future wake, minimal (no loop)": future_wake_minimal,
     "asyncio.timeout (sim loop)": asyncio_timeouts_sim,
     "simpy never | timeout": simpy_timeouts,
 }
@@ -357,7 +421,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         n, k, seed = args.tasks, args.sleeps, args.seed
         print(f"\nfanout: {n} tasks x {k} sleeps (seed {seed})\n{HEADER}")
         floor = Cost("asyncio.sleep(0) (stock loop)", n, k, seed)
-        for name in ("clock.sleep", "asyncio.sleep (sim loop)", "simpy timeout"):
+        for name in (
+            "clock.sleep",
+            "asyncio.sleep (sim loop)",
+            "simpy timeout",
+            "future wake, minimal (no loop)",
+        ):
             print(_row(name, Cost(name, n, k, seed), floor, "the asyncio.sleep(0) floor"))
         print(_row("asyncio.sleep(0) (stock loop)", floor, floor, "itself"))
     if "timeouts" in parts:
