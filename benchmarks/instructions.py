@@ -136,6 +136,7 @@ def future_wake_minimal(rows: list[list[float]]) -> None:
                 for fut in entry:
                     wake(fut)
                 continue
+            # wake(entry), inlined as the kernel wakes a lone waiter (no call per wakeup)
             ((callback, ctx),) = entry._callbacks
             entry.remove_done_callback(callback)
             entry.set_result(None)

@@ -55,6 +55,16 @@ def raw_session(*, connect: list[str], listen: list[str]) -> Any:
     return zenoh.open(zenoh.Config.from_json5(json.dumps(config)))
 
 
+def next_sample(subscriber: Any, timeout: float) -> Any:
+    """The next sample of a channel subscriber within ``timeout`` wall seconds, or None."""
+    deadline = time.monotonic() + timeout
+    while True:
+        sample = subscriber.handler.try_recv()
+        if sample is not None or time.monotonic() >= deadline:
+            return sample
+        time.sleep(0.001)
+
+
 class Received:
     """A raw subscriber of the test, read through a channel: a Python callback would run on
     a non-daemon Zenoh thread, which the loop would count as busy work holding sim time."""
@@ -63,19 +73,15 @@ class Received:
         self._sub = session.declare_subscriber(key, zenoh.handlers.FifoChannel(1024))
 
     def poll(self, timeout: float) -> tuple[str, bytes, bytes | None] | None:
-        deadline = time.monotonic() + timeout
-        while True:
-            sample = self._sub.handler.try_recv()
-            if sample is not None:
-                attachment = sample.attachment
-                return (
-                    str(sample.key_expr),
-                    sample.payload.to_bytes(),
-                    None if attachment is None else attachment.to_bytes(),
-                )
-            if time.monotonic() >= deadline:
-                return None
-            time.sleep(0.001)
+        sample = next_sample(self._sub, timeout)
+        if sample is None:
+            return None
+        attachment = sample.attachment
+        return (
+            str(sample.key_expr),
+            sample.payload.to_bytes(),
+            None if attachment is None else attachment.to_bytes(),
+        )
 
     def next(self) -> tuple[str, bytes, bytes | None]:
         sample = self.poll(WAIT)
@@ -120,14 +126,14 @@ class Withdrawals:
     def wait_for(self, keys: list[str]) -> None:
         pending = list(keys)
         deadline = time.monotonic() + WAIT
-        while pending:
-            sample = self._sub.handler.try_recv()
-            if sample is None:
-                assert time.monotonic() < deadline, f"tokens never withdrawn: {pending}"
-                time.sleep(0.001)
-            elif sample.kind == zenoh.SampleKind.DELETE and str(sample.key_expr) in pending:
-                pending.remove(str(sample.key_expr))
-        self._sub.undeclare()
+        try:
+            while pending:
+                sample = next_sample(self._sub, deadline - time.monotonic())
+                assert sample is not None, f"tokens never withdrawn: {pending}"
+                if sample.kind == zenoh.SampleKind.DELETE and str(sample.key_expr) in pending:
+                    pending.remove(str(sample.key_expr))
+        finally:
+            self._sub.undeclare()
 
 
 # ------------------------------------------------------------------------------- publisher
