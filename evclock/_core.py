@@ -484,6 +484,49 @@ class SimCore:
         ready (a step hook), the host runs it first.
         """
         heap = self._heap
+        if not heap:
+            return False
+        when = heap[0]
+        virtual = self._virtual
+        # The common case in one screen: one pending wait alone at the next deadline
+        # (deadlines are distinct), later than now, on the default source: a clock.sleep
+        # future or asyncio.sleep's timer (a cancelled timer has no callback).
+        if virtual is not None and when > self.now_ns:
+            entry = self._at[when]
+            if type(entry) is _Future:
+                fut, result = entry, None
+            elif (
+                isinstance(entry, _TimerHandle) and entry._callback is _SET_RESULT_UNLESS_CANCELLED
+            ):
+                fut, result = entry._args
+            else:
+                return self._wake_next_any(ready)
+            if not fut.done():
+                virtual._now = self.now_ns = when
+                _heappop(heap)
+                del self._at[when]
+                if fut is not entry:
+                    entry._scheduled = False
+                callbacks = fut._callbacks
+                if len(callbacks) == 1 and type(fut) is _Future:  # one task waits: wake it here
+                    callback, ctx = callbacks[0]
+                    fut.remove_done_callback(callback)
+                    fut.set_result(result)
+                    try:
+                        ctx.run(callback, fut)
+                    except (SystemExit, KeyboardInterrupt):
+                        raise
+                    except BaseException as exc:
+                        self._report_wakeup_error(exc)
+                else:
+                    self._wake_in_place(fut, result)
+                return True
+        return self._wake_next_any(ready)
+
+    def _wake_next_any(self, ready: Any) -> bool:
+        """:meth:`wake_next` for every other case (timers, buckets, dead entries, stepping
+        sources, entries due now)."""
+        heap = self._heap
         at = self._at
         while heap:
             when = heap[0]
