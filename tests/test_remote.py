@@ -11,8 +11,10 @@ import itertools
 import json
 import os
 import re
+import socket
 import stat
 import subprocess
+import threading
 from pathlib import Path
 
 import pytest
@@ -776,9 +778,8 @@ def test_a_jump_while_a_participant_works_supersedes_its_round(tmp_path: Path) -
 
 
 def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
-    # The follower tells the simulation when its own clock has reached 0.5 s: a follower
-    # reads the server's time only as its own deadlines come, so one still at 0 would see
-    # the jump back to 0.1 s as a move forward (see the README's limits).
+    # The follower tells the simulation when its own clock has reached 0.5 s, so it is at
+    # the simulation's time when the jump comes (a follower behind it: the next test).
     url = address(tmp_path)
     proc = spawn(
         tmp_path,
@@ -817,3 +818,105 @@ def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
     woken_at, before, after = json.loads(out)
     assert woken_at == after == 100_000_000
     assert before == 500_000_000
+
+
+def test_frames_that_come_with_the_welcome_are_not_lost(tmp_path: Path) -> None:
+    # A server that jumps at once after a join sends WELCOME and JUMP together; the
+    # participant's join reads both in one recv. A scripted server on a real socket makes
+    # that certain: the JUMP (0.5 s -> 0.1 s, the follower still at 0) must be applied.
+    path = tmp_path / "scripted.sock"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    listener.bind(str(path))
+    listener.listen(1)
+    listener.settimeout(10)
+    received: list[tuple[int, bytes]] = []
+
+    def scripted_server() -> None:
+        conn, _ = listener.accept()
+        with conn:
+            conn.settimeout(10)
+            reader = proto.Reader()
+            while not received:
+                received.extend(reader.feed(conn.recv(4096)))  # the HELLO
+            conn.sendall(proto.welcome(0, b"{}") + proto.jump(1, 500_000_000, 100_000_000))
+            while data := conn.recv(4096):  # until the participant leaves (BYE, EOF)
+                received.extend(reader.feed(data))
+
+    server = threading.Thread(target=scripted_server)
+    server.start()
+    seen: list[int] = []
+
+    async def main() -> None:
+        try:
+            await evclock.clock().sleep(3600)
+        except evclock.ClockJumped as exc:
+            seen[:] = [exc.jump.before.nanoseconds, exc.jump.after.nanoseconds]
+            seen.append(evclock.clock().now().nanoseconds)
+
+    try:
+        evclock.run(main(), clock=f"unix://{path}?name=f&mode=follow&timeout=10")
+    finally:
+        server.join(15)
+        listener.close()
+    assert not server.is_alive()
+    assert seen == [500_000_000, 100_000_000, 100_000_000]
+    kinds = [kind for kind, _ in received]
+    assert kinds[0] == proto.HELLO
+    assert kinds[-1] == proto.BYE
+    acked = [proto.parse_jumped(payload) for kind, payload in received if kind == proto.JUMPED]
+    assert acked == [1]  # it acknowledged the jump
+
+
+@pytest.mark.parametrize("lag", [0.0, 0.3], ids=["prompt", "lagging"])
+def test_a_follower_behind_the_simulation_reaches_the_jump_time_then_jumps_back(
+    tmp_path: Path, lag: float
+) -> None:
+    # The simulation reaches 0.5 s and jumps back to 0.1 s without waiting for the follower
+    # (followers never hold it), which may still be at 0 when it reads the JUMP (the more
+    # so when it is busy for `lag` wall seconds first): its clock first moves to 0.5 s, its
+    # deadline at 0.3 s firing on the way, and then jumps back, so its long sleep raises
+    # ClockJumped, as in-process. Same outcome whatever the timing.
+    url = address(tmp_path)
+    proc = spawn(
+        tmp_path,
+        f"""
+        import json, time, evclock
+        async def main():
+            time.sleep({lag})  # busy: the simulation runs on
+            clock = evclock.clock()
+            seen = []
+            clock.on_jump(
+                post=lambda j: seen.append(["jump", j.before.nanoseconds, j.after.nanoseconds]),
+                threshold=evclock.JumpThreshold(min_forward=evclock.Duration(nanoseconds=1)),
+            )
+            await clock.sleep(0.3)
+            seen.append(["woken", clock.now().nanoseconds])
+            try:
+                await clock.sleep(3600)
+            except evclock.ClockJumped as exc:
+                seen.append(["jumped", clock.now().nanoseconds, exc.jump.before.nanoseconds,
+                             exc.jump.after.nanoseconds])
+            print(json.dumps(seen))
+        evclock.run(main())
+        """,
+        EVCLOCK_CLOCK=f"{url}?name=f&mode=follow",
+    )
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("f")
+            await clock.sleep(0.5)
+            loop.source.set_time(100_000_000)
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    ms = 1_000_000
+    assert json.loads(out) == [
+        ["woken", 300 * ms],
+        ["jump", 500 * ms, 100 * ms],
+        ["jumped", 100 * ms, 500 * ms, 100 * ms],
+    ]

@@ -43,6 +43,10 @@ from ._server import Message
 #: Wall seconds between connection attempts while the server is not up yet.
 _RETRY = 0.05
 
+#: Frames about sim time that a follower's pending jump holds back (replies and the
+#: server's goodbye are handled at once: a call waits for its reply).
+_AFTER_A_JUMP = frozenset({proto.GRANT, proto.TIME, proto.DELIVER, proto.JUMP})
+
 
 def _default_name() -> str:
     program = os.path.basename(sys.argv[0]) if sys.argv and sys.argv[0] else "python"
@@ -75,6 +79,10 @@ class RemoteClockSource(TimeSource):
         self.mode = addr.mode
         self._lockstep = addr.mode == "lockstep"
         self._timeout = addr.timeout
+        self._reader = proto.Reader()  # the join's reader: it keeps what followed the WELCOME
+        # Frames read with the WELCOME (a jump, a time, data sent at once after the join),
+        # handled in order once the loop runs, before anything read later.
+        self._early: list[tuple[int, bytes]] = []
         self._sock, now_ns, self.info = self._join(addr)
         self._sock.setblocking(False)
         self.io_fd: int | None = self._sock.fileno()  # the loop may leave this fd to us
@@ -84,7 +92,6 @@ class RemoteClockSource(TimeSource):
         self._working = self._lockstep  # a lockstep participant starts working at join
         self._asked = proto.NO_DEADLINE  # deadline last told the server (follow)
         self._waiting_since: float | None = None
-        self._reader = proto.Reader()
         self._out = bytearray()
         self._held_out: list[bytes] = []  # lockstep data produced between rounds
         self._inbox: list[tuple[int, str, str, bytes]] = []
@@ -92,6 +99,11 @@ class RemoteClockSource(TimeSource):
         self._replies: dict[int, tuple[bool, bytes]] = {}
         self._call_ids = itertools.count(1).__next__
         self._lost: ClockLost | None = None
+        # A JUMP read by a follower whose clock is still behind the time the simulation
+        # jumped from: the clock first gets there (its deadlines up to it fire), then jumps.
+        # Frames read meanwhile are about the new time and wait, in order, for the jump.
+        self._jump_pending: tuple[int, int, int] | None = None
+        self._after_jump: list[tuple[int, bytes]] = []
         self._reading = False
         self._writing = False  # a writer callback is registered for the rest of _out
         self._closed = False
@@ -117,7 +129,7 @@ class RemoteClockSource(TimeSource):
         try:
             mode = proto.MODE_LOCKSTEP if self._lockstep else proto.MODE_FOLLOW
             sock.sendall(proto.hello(mode, self.name, addr.token))
-            kind, payload = self._read_one(sock, deadline, addr)
+            kind, payload = self._read_one(sock, deadline, addr, self._reader, self._early)
         except BaseException:
             sock.close()
             raise
@@ -143,8 +155,15 @@ class RemoteClockSource(TimeSource):
         return sock, now_ns, info
 
     @staticmethod
-    def _read_one(sock: socket.socket, deadline: float, addr: Address) -> tuple[int, bytes]:
-        reader = proto.Reader()
+    def _read_one(
+        sock: socket.socket,
+        deadline: float,
+        addr: Address,
+        reader: proto.Reader,
+        rest: list[tuple[int, bytes]],
+    ) -> tuple[int, bytes]:
+        """The server's first frame; frames that came with it go to ``rest`` (and a part
+        of the next one stays in ``reader``): nothing the server sent is dropped."""
         while True:
             remaining = deadline - time.monotonic()
             if remaining <= 0:
@@ -162,6 +181,7 @@ class RemoteClockSource(TimeSource):
                 raise ClockLost(f"the clock server at {addr} closed the connection at join")
             frames = reader.feed(data)
             if frames:
+                rest.extend(frames[1:])
                 return frames[0]
 
     # ------------------------------------------------------------ TimeSource
@@ -210,6 +230,12 @@ class RemoteClockSource(TimeSource):
             raise self._lost
         if not self._reading:
             self._start_reading()
+            if self._early:  # frames that came with the WELCOME, first
+                now = self._now
+                early, self._early = self._early, []
+                self._handle_frames(early)
+                if self._now != now:
+                    return self._now  # a jump: its woken tasks run before anything else
         now = self._now
         if self._lockstep:
             if self._working:  # everything at `now` is done: say so, name the next deadline
@@ -232,6 +258,12 @@ class RemoteClockSource(TimeSource):
             if self._waiting_since is not None:
                 self._check_wait()
             return now
+        if self._jump_pending is not None:
+            before = self._jump_pending[1]
+            if now < before:  # catch up with the time the simulation jumped from, exactly
+                return self._move_to(before if target_ns is None else min(target_ns, before))
+            self._apply_pending_jump()  # its woken tasks run before anything else
+            return self._now
         if target_ns is not None and target_ns != self._asked:
             self._asked = target_ns  # the server tells the time at this deadline at the latest
             self._send(proto.done(now, target_ns))
@@ -435,12 +467,23 @@ class RemoteClockSource(TimeSource):
         if self._waiting_since is not None:
             self._waiting_since = time.monotonic()  # the server is alive (keepalives included)
         try:
-            for kind, payload in self._reader.feed(data):
+            frames = self._reader.feed(data)
+        except ProtocolError as exc:
+            self._lose(f"the clock server at {self._address} broke the protocol: {exc}")
+            return
+        self._handle_frames(frames)
+
+    def _handle_frames(self, frames: list[tuple[int, bytes]]) -> None:
+        try:
+            for kind, payload in frames:
                 self._handle(kind, payload)
         except ProtocolError as exc:
             self._lose(f"the clock server at {self._address} broke the protocol: {exc}")
 
     def _handle(self, kind: int, payload: bytes) -> None:
+        if self._jump_pending is not None and kind in _AFTER_A_JUMP:
+            self._after_jump.append((kind, payload))  # about the new time: after the jump
+            return
         if kind == proto.GRANT:
             t_ns = proto.parse_stamp(payload)
             self._check_forward(t_ns)
@@ -464,7 +507,29 @@ class RemoteClockSource(TimeSource):
     def _on_jump(self, seq: int, before_ns: int, after_ns: int) -> None:
         """The simulation's time jumped: this clock jumps alike (evclock's jump policy:
         handlers run, pending sleeps raise ClockJumped, asyncio timers keep their remaining
-        delay), after the data delivered before the jump, then works at the new time."""
+        delay), after the data delivered before the jump, then works at the new time.
+
+        A follower behind the simulation first moves to ``before_ns`` (its deadlines up to
+        it fire, as they did in the simulation), so it jumps from the time the simulation
+        jumped from, as an in-process task would: a jump back is never seen as a move on.
+        """
+        if not self._lockstep and self._now < before_ns:
+            self._jump_pending = (seq, before_ns, after_ns)
+            self._latest = max(self._latest, before_ns)
+            return
+        self._apply_jump(seq, before_ns, after_ns)
+
+    def _apply_pending_jump(self) -> None:
+        """The follower has reached the time the simulation jumped from: jump, then handle
+        the frames read meanwhile (another JUMP among them waits again)."""
+        pending = self._jump_pending
+        assert pending is not None
+        self._jump_pending = None
+        frames, self._after_jump = self._after_jump, []
+        self._apply_jump(*pending)
+        self._handle_frames(frames)
+
+    def _apply_jump(self, seq: int, before_ns: int, after_ns: int) -> None:
         pending, self._inbox = self._inbox, []
         self._deliver(pending)  # everything delivered before the jump is handled before it
         self._granted = None  # a grant read before the jump is about the old time
