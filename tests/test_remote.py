@@ -15,6 +15,7 @@ import socket
 import stat
 import subprocess
 import threading
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -739,7 +740,7 @@ def test_a_time_jump_reaches_lockstep_participants_in_order_with_data(
         ["tick", 3 * ms],
         ["msg", "before", 3_500_000, 3_500_000],
         ["tick", 4 * ms],
-        ["jump", 4 * ms, to_ns],  # its own clock's jump: from its time to the new one
+        ["jump", 4_500_000, to_ns],  # the simulation's jump: its clock first reaches 4.5 ms
         ["woken", to_ns, to_ns],  # its pending sleep (due at 5 ms) raised ClockJumped
         ["tick", to_ns + 1 * ms],
         ["tick", to_ns + 2 * ms],  # six ticks in all: it leaves, the server ends
@@ -766,15 +767,20 @@ def test_a_jump_while_a_participant_works_supersedes_its_round(tmp_path: Path) -
     evclock.run(main())
     code, out, err = finish(proc)
     assert code == 0, err
-    events = json.loads(out)
     ms = 1_000_000
-    assert events[:4] == [["tick", ms], ["tick", 2 * ms], ["tick", 3 * ms], events[3]]
-    assert events[3][:3] == ["msg", "before", 3_500_000]
-    # Its clock read 3 ms or 3.5 ms when the jump came (whether it had applied the grant).
-    assert events[4][0] == "jump"
-    assert events[4][1] in (3 * ms, 3_500_000)
-    assert events[4][2] == 0
-    assert events[5:] == [["woken", 0, 0], ["tick", ms], ["tick", 2 * ms], ["tick", 3 * ms]]
+    # Whether or not it had applied the grant to 3.5 ms when it read the JUMP, it handles
+    # the data at 3.5 ms and jumps from there, as the simulation did: the same events.
+    assert json.loads(out) == [
+        ["tick", ms],
+        ["tick", 2 * ms],
+        ["tick", 3 * ms],
+        ["msg", "before", 3_500_000, 3_500_000],
+        ["jump", 3_500_000, 0],
+        ["woken", 0, 0],
+        ["tick", ms],
+        ["tick", 2 * ms],
+        ["tick", 3 * ms],
+    ]
 
 
 def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
@@ -820,30 +826,61 @@ def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
     assert before == 500_000_000
 
 
-def test_frames_that_come_with_the_welcome_are_not_lost(tmp_path: Path) -> None:
-    # A server that jumps at once after a join sends WELCOME and JUMP together; the
-    # participant's join reads both in one recv. A scripted server on a real socket makes
-    # that certain: the JUMP (0.5 s -> 0.1 s, the follower still at 0) must be applied.
-    path = tmp_path / "scripted.sock"
-    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    listener.bind(str(path))
-    listener.listen(1)
-    listener.settimeout(10)
-    received: list[tuple[int, bytes]] = []
+class ScriptedServer:
+    """A clock server that follows a script, byte for byte, on a real Unix socket: it makes
+    certain orders of frames (several in one write) that a real server makes only by chance.
+    Every read is bounded (10 s)."""
 
-    def scripted_server() -> None:
-        conn, _ = listener.accept()
+    def __init__(self, path: Path, script: Callable[[ScriptedServer], None]) -> None:
+        self.received: list[tuple[int, bytes]] = []
+        self._reader = proto.Reader()
+        self._listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        self._listener.bind(str(path))
+        self._listener.listen(1)
+        self._listener.settimeout(10)
+        self._script = script
+        self._thread = threading.Thread(target=self._serve)
+        self._thread.start()
+
+    def _serve(self) -> None:
+        conn, _ = self._listener.accept()
         with conn:
             conn.settimeout(10)
-            reader = proto.Reader()
-            while not received:
-                received.extend(reader.feed(conn.recv(4096)))  # the HELLO
-            conn.sendall(proto.welcome(0, b"{}") + proto.jump(1, 500_000_000, 100_000_000))
+            self.conn = conn
+            self.expect(proto.HELLO)
+            self._script(self)
             while data := conn.recv(4096):  # until the participant leaves (BYE, EOF)
-                received.extend(reader.feed(data))
+                self.received.extend(self._reader.feed(data))
 
-    server = threading.Thread(target=scripted_server)
-    server.start()
+    def expect(self, kind: int) -> bytes:
+        """Read until a frame of ``kind`` arrives; its payload."""
+        while True:
+            for got, payload in self.received:
+                if got == kind:
+                    return payload
+            data = self.conn.recv(4096)
+            assert data, f"the participant closed before sending frame kind {kind}"
+            self.received.extend(self._reader.feed(data))
+
+    def send(self, data: bytes) -> None:
+        self.conn.sendall(data)
+
+    def finish(self) -> list[int]:
+        """Wait for the participant to leave; the kinds of every frame it sent."""
+        self._thread.join(15)
+        self._listener.close()
+        assert not self._thread.is_alive()
+        return [kind for kind, _ in self.received]
+
+
+def test_frames_that_come_with_the_welcome_are_not_lost(tmp_path: Path) -> None:
+    # A server that jumps at once after a join sends WELCOME and JUMP together; the
+    # participant's join reads both in one recv. The JUMP (0.5 s -> 0.1 s, the follower
+    # still at 0) must be applied.
+    path = tmp_path / "scripted.sock"
+    server = ScriptedServer(
+        path, lambda s: s.send(proto.welcome(0, b"{}") + proto.jump(1, 500_000_000, 100_000_000))
+    )
     seen: list[int] = []
 
     async def main() -> None:
@@ -856,15 +893,54 @@ def test_frames_that_come_with_the_welcome_are_not_lost(tmp_path: Path) -> None:
     try:
         evclock.run(main(), clock=f"unix://{path}?name=f&mode=follow&timeout=10")
     finally:
-        server.join(15)
-        listener.close()
-    assert not server.is_alive()
+        kinds = server.finish()
     assert seen == [500_000_000, 100_000_000, 100_000_000]
-    kinds = [kind for kind, _ in received]
-    assert kinds[0] == proto.HELLO
     assert kinds[-1] == proto.BYE
-    acked = [proto.parse_jumped(payload) for kind, payload in received if kind == proto.JUMPED]
+    acked = [proto.parse_jumped(p) for kind, p in server.received if kind == proto.JUMPED]
     assert acked == [1]  # it acknowledged the jump
+
+
+def test_a_lockstep_participant_does_its_granted_round_before_the_jump_after_it(
+    tmp_path: Path,
+) -> None:
+    # The simulation grants 1 ms, and a task of its own jumps back to 0 at 1 ms: GRANT and
+    # JUMP arrive in one read, before the participant applied the grant. It works at 1 ms
+    # first (its tick there), then jumps from 1 ms, as the simulation did; the round at
+    # 1 ms is superseded (no DONE for it), its sleep due at 2 ms raises ClockJumped.
+    ms = 1_000_000
+
+    def script(s: ScriptedServer) -> None:
+        s.send(proto.welcome(0, b"{}"))
+        assert proto.parse_done(s.expect(proto.DONE)) == (0, ms)  # at work at 0, due at 1 ms
+        s.send(proto.grant(ms) + proto.jump(1, ms, 0))
+
+    path = tmp_path / "scripted.sock"
+    server = ScriptedServer(path, script)
+    events: list[list[int | str]] = []
+
+    async def main() -> None:
+        clock = evclock.clock()
+        clock.on_jump(
+            post=lambda j: events.append(["jump", j.before.nanoseconds, j.after.nanoseconds]),
+            threshold=evclock.JumpThreshold(min_forward=evclock.Duration(nanoseconds=1)),
+        )
+        await clock.sleep(0.001)
+        events.append(["tick", clock.now().nanoseconds])
+        try:
+            await clock.sleep(0.001)
+        except evclock.ClockJumped:
+            events.append(["woken", clock.now().nanoseconds])
+
+    try:
+        evclock.run(main(), clock=f"unix://{path}?name=p&timeout=10")
+    finally:
+        kinds = server.finish()
+    assert events == [["tick", ms], ["jump", ms, 0], ["woken", 0]]
+    assert kinds[-1] == proto.BYE
+    acked = [proto.parse_jumped(p) for kind, p in server.received if kind == proto.JUMPED]
+    assert acked == [1]
+    dones = [proto.parse_done(p) for kind, p in server.received if kind == proto.DONE]
+    assert all(t == 0 for t, _ in dones)  # none for the superseded round at 1 ms
 
 
 @pytest.mark.parametrize("lag", [0.0, 0.3], ids=["prompt", "lagging"])

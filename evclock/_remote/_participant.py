@@ -99,9 +99,10 @@ class RemoteClockSource(TimeSource):
         self._replies: dict[int, tuple[bool, bytes]] = {}
         self._call_ids = itertools.count(1).__next__
         self._lost: ClockLost | None = None
-        # A JUMP read by a follower whose clock is still behind the time the simulation
-        # jumped from: the clock first gets there (its deadlines up to it fire), then jumps.
-        # Frames read meanwhile are about the new time and wait, in order, for the jump.
+        # A JUMP read while this clock is still behind the time the simulation jumped from
+        # (a follower; a lockstep participant with a grant there): the clock first gets
+        # there (what is due up to it runs), then jumps. Frames read meanwhile are about
+        # the new time and wait, in order, for the jump.
         self._jump_pending: tuple[int, int, int] | None = None
         self._after_jump: list[tuple[int, bytes]] = []
         self._reading = False
@@ -238,6 +239,9 @@ class RemoteClockSource(TimeSource):
                     return self._now  # a jump: its woken tasks run before anything else
         now = self._now
         if self._lockstep:
+            if self._jump_pending is not None and self._granted is None:
+                self._apply_pending_jump()  # its round at the jump's time is over: now jump
+                return self._now
             if self._working:  # everything at `now` is done: say so, name the next deadline
                 self._working = False
                 # The round's data went into _out before: one send carries data and DONE.
@@ -461,7 +465,12 @@ class RemoteClockSource(TimeSource):
             return
         if len(data) == proto.STAMP_SIZE and self._reader.between_frames:
             length, kind, t_ns = proto.unpack_stamp(data)
-            if kind == proto.GRANT and length == proto.STAMP_SIZE - 4 and t_ns >= self._now:
+            if (
+                kind == proto.GRANT
+                and length == proto.STAMP_SIZE - 4
+                and t_ns >= self._now
+                and self._jump_pending is None
+            ):
                 self._granted = t_ns  # a round's GRANT alone: the hot path
                 return
         if self._waiting_since is not None:
@@ -509,18 +518,25 @@ class RemoteClockSource(TimeSource):
         handlers run, pending sleeps raise ClockJumped, asyncio timers keep their remaining
         delay), after the data delivered before the jump, then works at the new time.
 
-        A follower behind the simulation first moves to ``before_ns`` (its deadlines up to
-        it fire, as they did in the simulation), so it jumps from the time the simulation
-        jumped from, as an in-process task would: a jump back is never seen as a move on.
+        A participant behind the simulation first moves to ``before_ns``, so it jumps from
+        the time the simulation jumped from, as an in-process task would (a jump back is
+        never seen as a move on, and every process's handlers see the same jump): a
+        follower's deadlines up to it fire on the way; a lockstep participant granted that
+        time first does its work there (the grant came before the jump); one not granted
+        has nothing due until then (its next deadline is later) and moves there at once.
         """
-        if not self._lockstep and self._now < before_ns:
-            self._jump_pending = (seq, before_ns, after_ns)
-            self._latest = max(self._latest, before_ns)
-            return
+        if self._now < before_ns:
+            if not self._lockstep or self._granted is not None:
+                self._jump_pending = (seq, before_ns, after_ns)
+                self._latest = max(self._latest, before_ns)
+                return
+            self._now = before_ns
+            host: Any = self._host
+            host.stepped_to(before_ns)
         self._apply_jump(seq, before_ns, after_ns)
 
     def _apply_pending_jump(self) -> None:
-        """The follower has reached the time the simulation jumped from: jump, then handle
+        """This clock has reached the time the simulation jumped from: jump, then handle
         the frames read meanwhile (another JUMP among them waits again)."""
         pending = self._jump_pending
         assert pending is not None
