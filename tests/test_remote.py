@@ -747,6 +747,87 @@ def test_a_time_jump_reaches_lockstep_participants_in_order_with_data(
     ]
 
 
+SNAPSHOT_PARTICIPANT = """
+import json, evclock
+async def main():
+    clock = evclock.clock()
+    events = []
+    clock.on_jump(
+        post=lambda j: events.append(["jump", j.before.nanoseconds, j.after.nanoseconds]),
+        threshold=evclock.JumpThreshold(min_forward=evclock.Duration(nanoseconds=1)),
+    )
+    ticks = 0
+    while ticks < 8:
+        try:
+            await clock.sleep(0.25)  # 60 physics steps at 240 Hz
+            events.append(["tick", clock.now().nanoseconds])
+            ticks += 1
+        except evclock.ClockJumped:
+            events.append(["woken", clock.now().nanoseconds])
+    print(json.dumps(events))
+evclock.run(main())
+"""
+
+
+@pytest.mark.pybullet
+def test_a_restored_pybullet_snapshot_reaches_every_participant_as_one_jump(
+    tmp_path: Path,
+) -> None:
+    # The simulation steps PyBullet, snapshots at 0.6 s and restores the snapshot at 1.1 s:
+    # its clock jumps back 1.1 s -> 0.6 s. A lockstep participant and a follower see that
+    # same jump; the lockstep one, whose 0.25 s sleeps are on physics steps, keeps exactly
+    # the timeline an in-process task would (its sleep due at 1.25 s raises ClockJumped
+    # at 0.6 s, then it ticks every 0.25 s from there).
+    from evclock import PyBulletTimeSource
+
+    url = address(tmp_path)
+    lockstep = spawn(tmp_path, SNAPSHOT_PARTICIPANT, EVCLOCK_CLOCK=f"{url}?name=lock")
+    follower = spawn(tmp_path, SNAPSHOT_PARTICIPANT, EVCLOCK_CLOCK=f"{url}?name=fol&mode=follow")
+    source = PyBulletTimeSource.connect()
+    jumps: list[tuple[int, int]] = []
+
+    async def main() -> None:
+        clock = evclock.clock()
+        clock.on_jump(post=lambda j: jumps.append((j.before.nanoseconds, j.after.nanoseconds)))
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("lock", "fol")
+            await clock.sleep(0.6)
+            snapshot = source.save_state()
+            await clock.sleep(0.5)
+            source.restore_state(snapshot)
+            await server.wait_until_left()
+
+    evclock.run(main(), source=source)
+    ms = 1_000_000
+    assert jumps == [(1100 * ms, 600 * ms)]
+    code, out, err = finish(lockstep)
+    assert code == 0, err
+    assert json.loads(out) == [
+        ["tick", 250 * ms],
+        ["tick", 500 * ms],
+        ["tick", 750 * ms],
+        ["tick", 1000 * ms],
+        ["jump", 1100 * ms, 600 * ms],
+        ["woken", 600 * ms],
+        ["tick", 850 * ms],
+        ["tick", 1100 * ms],
+        ["tick", 1350 * ms],
+        ["tick", 1600 * ms],
+    ]
+    code, out, err = finish(follower)
+    assert code == 0, err
+    # A follower may fire a deadline at a later physics step than due (it never holds the
+    # simulation), but it hears the same jump, in order, and wakes at its target.
+    events = json.loads(out)
+    kinds = [event[0] for event in events]
+    assert kinds.count("jump") == 1
+    at = kinds.index("jump")
+    assert events[at] == ["jump", 1100 * ms, 600 * ms]
+    assert all(kind == "tick" for kind in kinds[:at])
+    assert events[at + 1] == ["woken", 600 * ms]
+    assert all(t <= 1100 * ms for _, t in events[:at])
+
+
 def test_a_jump_while_a_participant_works_supersedes_its_round(tmp_path: Path) -> None:
     # The simulation publishes (granting the subscribed participant 3.5 ms) and jumps back
     # in the same step: the participant handles the data, then jumps; a DONE it sent for
