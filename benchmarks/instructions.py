@@ -34,7 +34,8 @@ import re
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Generator, Sequence
+import types
+from collections.abc import Callable, Coroutine, Generator, Sequence
 from typing import Any
 
 MIN_NS = 1_000_000
@@ -93,6 +94,29 @@ def asyncio_sleep0(rows: list[list[float]]) -> None:
     asyncio.run(main())
 
 
+def _run_minimal(
+    loop: asyncio.AbstractEventLoop,
+    rows: list[list[float]],
+    worker: Callable[[list[float]], Coroutine[Any, Any, None]],
+    drive: Callable[[], None],
+) -> None:
+    """Start one ``worker`` task per row on ``loop``, let each reach its first wait, then
+    ``drive()`` them all to their end (the minimal variants' shared harness)."""
+
+    async def start() -> list[asyncio.Task[None]]:
+        tasks = [loop.create_task(worker(row)) for row in rows]
+        await asyncio.sleep(0)  # every task runs to its first wait
+        return tasks
+
+    try:
+        tasks = loop.run_until_complete(start())
+        drive()
+        for task in tasks:
+            task.result()  # each ran to its end
+    finally:
+        loop.close()
+
+
 def future_wake_minimal(rows: list[list[float]]) -> None:
     """The least a future-based sleep can cost: each task parks on a C ``asyncio.Future``; a
     plain function pops the earliest int deadline (a heap of distinct deadlines with what is
@@ -142,18 +166,62 @@ def future_wake_minimal(rows: list[list[float]]) -> None:
             entry.set_result(None)
             ctx.run(callback, entry)
 
-    async def start() -> list[asyncio.Task[None]]:
-        tasks = [loop.create_task(worker(row)) for row in rows]
-        await asyncio.sleep(0)  # every task runs to its first wait
-        return tasks
+    _run_minimal(loop, rows, worker, drive)
 
-    try:
-        tasks = loop.run_until_complete(start())
-        drive()
-        for task in tasks:
-            task.result()  # each ran to its end
-    finally:
-        loop.close()
+
+def park_minimal(rows: list[list[float]]) -> None:
+    """The least a sleep costs that parks the task without a future: a bare ``yield`` (as
+    ``asyncio.sleep(0)`` does) makes the task's step hand itself to ``loop.call_soon``,
+    which files it under the sleep's deadline instead of running it next; a plain
+    function pops the earliest deadline and runs the step in place. Not a scheduler:
+    nothing here can cancel a parked task (``Task.cancel`` of a task waiting on no future
+    only sets a flag), and there is no loop, time source or validation."""
+    heap: list[int] = []
+    at: dict[int, Any] = {}
+    now = [0]
+    parking: list[int | None] = [None]
+    heappush, heappop = heapq.heappush, heapq.heappop
+
+    class ParkingLoop(asyncio.SelectorEventLoop):
+        def call_soon(self, callback: Any, *args: Any, context: Any = None) -> Any:  # type: ignore[override]
+            when = parking[0]
+            if when is None:
+                return super().call_soon(callback, *args, context=context)
+            parking[0] = None
+            entry = (callback, context)
+            present = at.setdefault(when, entry)
+            if present is entry:
+                heappush(heap, when)
+            elif type(present) is list:
+                present.append(entry)
+            else:
+                at[when] = [present, entry]
+            return None
+
+    loop = ParkingLoop()
+
+    @types.coroutine
+    def sleep(seconds: float) -> Generator[None, None, None]:
+        parking[0] = now[0] + round(seconds * 1e9)
+        yield
+
+    async def worker(durations: list[float]) -> None:
+        for d in durations:
+            await sleep(d)
+
+    def drive() -> None:
+        pop = at.pop
+        while heap:
+            now[0] = when = heappop(heap)
+            entry = pop(when)
+            if type(entry) is list:
+                for step, ctx in entry:
+                    ctx.run(step)
+                continue
+            step, ctx = entry
+            ctx.run(step)
+
+    _run_minimal(loop, rows, worker, drive)
 
 
 def simpy_timeout(rows: list[list[float]]) -> None:
@@ -291,6 +359,7 @@ VARIANTS: dict[str, Callable[[list[list[float]]], None]] = {
     "asyncio.sleep(0) (stock loop)": asyncio_sleep0,
     "simpy timeout": simpy_timeout,
     "future wake, minimal (no loop)": future_wake_minimal,
+    "bare-yield park, minimal (no loop)": park_minimal,
     "asyncio.timeout (sim loop)": asyncio_timeouts_sim,
     "simpy never | timeout": simpy_timeouts,
 }
@@ -427,6 +496,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "asyncio.sleep (sim loop)",
             "simpy timeout",
             "future wake, minimal (no loop)",
+            "bare-yield park, minimal (no loop)",
         ):
             print(_row(name, Cost(name, n, k, seed), floor, "the asyncio.sleep(0) floor"))
         print(_row("asyncio.sleep(0) (stock loop)", floor, floor, "itself"))
