@@ -444,12 +444,12 @@ class Cost:
 
 def _row(name: str, cost: Cost, base: Cost, against: str) -> str:
     return (
-        f"  {name:<32}{cost.instr:>10,.0f}{cost.instr / base.instr:>8.2f}x"
+        f"  {name:<36}{cost.instr:>10,.0f}{cost.instr / base.instr:>8.2f}x"
         f"{cost.ns:>10,.0f}{cost.ns / base.ns:>8.2f}x   (vs {against})"
     )
 
 
-HEADER = f"  {'':<32}{'instr':>10}{'ratio':>9}{'wall ns':>10}{'ratio':>9}"
+HEADER = f"  {'':<36}{'instr':>10}{'ratio':>9}{'wall ns':>10}{'ratio':>9}"
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
