@@ -406,6 +406,10 @@ def instructions(variant: str, tasks: int, count: int, seed: int, hz: float) -> 
         text=True,
         timeout=7200,
         check=True,
+        # One string-hash seed for every process: with a random one, dict layouts and so
+        # the start-up cost vary by a few million instructions from run to run (measured:
+        # 0.4% of a KUKA run's start-up), which the empty run cannot subtract.
+        env={**os.environ, "PYTHONHASHSEED": "0"},
     )
     found = re.search(r"Collected : (\d+)", done.stderr)
     if found is None:

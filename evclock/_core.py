@@ -484,15 +484,14 @@ class SimCore:
         ready (a step hook), the host runs it first.
         """
         heap = self._heap
-        if not heap:
-            return False
-        when = heap[0]
+        at = self._at
         virtual = self._virtual
-        # The common case in one screen: one pending wait alone at the next deadline
-        # (deadlines are distinct), later than now, on the default source: a clock.sleep
-        # future or asyncio.sleep's timer (a cancelled timer has no callback).
-        if virtual is not None and when > self.now_ns:
-            entry = self._at[when]
+        # The common case first: one pending wait alone at the next deadline (deadlines are
+        # distinct), later than now, on the default source: a clock.sleep future or
+        # asyncio.sleep's timer (a cancelled timer has no callback).
+        if virtual is not None and heap and heap[0] > self.now_ns:
+            when = heap[0]
+            entry = at[when]
             if type(entry) is _Future:
                 fut, result = entry, None
             elif (
@@ -500,16 +499,16 @@ class SimCore:
             ):
                 fut, result = entry._args
             else:
-                return self._wake_next_any(ready)
-            if not fut.done():
+                fut = None
+            if fut is not None and not fut.done():
                 virtual._now = self.now_ns = when
                 _heappop(heap)
-                del self._at[when]
+                del at[when]
                 if fut is not entry:
                     entry._scheduled = False
                 callbacks = fut._callbacks
-                # one task waits: wake it here (as _wake_next_any does; inlined in both, as the
-                # hot paths of virtual time and of stepping sources)
+                # one task waits: wake it here (as below; inlined in both, as the hot paths
+                # of virtual time and of stepping sources)
                 if len(callbacks) == 1 and type(fut) is _Future:
                     callback, ctx = callbacks[0]
                     fut.remove_done_callback(callback)
@@ -523,13 +522,7 @@ class SimCore:
                 else:
                     self._wake_in_place(fut, result)
                 return True
-        return self._wake_next_any(ready)
-
-    def _wake_next_any(self, ready: Any) -> bool:
-        """:meth:`wake_next` for every other case (timers, buckets, dead entries, stepping
-        sources, entries due now)."""
-        heap = self._heap
-        at = self._at
+        # Every other case: timers, buckets, dead entries, stepping sources, entries due now.
         while heap:
             when = heap[0]
             obj = at[when]
@@ -549,7 +542,6 @@ class SimCore:
             return False
         now = self.now_ns
         if when > now:
-            virtual = self._virtual
             if virtual is not None:
                 # VirtualTimeSource.advance(when, None), inlined: it moves exactly to any
                 # later target (the hot path's one call saved)
