@@ -407,8 +407,9 @@ def instructions(variant: str, tasks: int, count: int, seed: int, hz: float) -> 
         timeout=7200,
         check=True,
         # One string-hash seed for every process: with a random one, dict layouts and so
-        # the start-up cost vary by a few million instructions from run to run (measured:
-        # 0.4% of a KUKA run's start-up), which the empty run cannot subtract.
+        # the cost of the Python code vary from run to run (measured: the synchronous KUKA
+        # loop's cost per step by 3%). With one seed two runs agree to one instruction in a
+        # million; the figure is still that of one layout.
         env={**os.environ, "PYTHONHASHSEED": "0"},
     )
     found = re.search(r"Collected : (\d+)", done.stderr)
