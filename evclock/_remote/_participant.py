@@ -43,8 +43,8 @@ from ._server import Message
 #: Wall seconds between connection attempts while the server is not up yet.
 _RETRY = 0.05
 
-#: Frames about sim time that a follower's pending jump holds back (replies and the
-#: server's goodbye are handled at once: a call waits for its reply).
+#: Frames about sim time that a pending jump holds back (replies and the server's goodbye
+#: are handled at once: a call waits for its reply).
 _AFTER_A_JUMP = frozenset({proto.GRANT, proto.TIME, proto.DELIVER, proto.JUMP})
 
 
@@ -528,7 +528,6 @@ class RemoteClockSource(TimeSource):
         if self._now < before_ns:
             if not self._lockstep or self._granted is not None:
                 self._jump_pending = (seq, before_ns, after_ns)
-                self._latest = max(self._latest, before_ns)
                 return
             self._now = before_ns
             host: Any = self._host
