@@ -263,9 +263,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # EXTERNAL-SOURCE HOOK: fds whose traffic their owner accounts for exactly (the
         # clock server's participant connections): not inferred as work in flight.
         self._accounted_fds: set[int] = set()  # membership only, never iterated
-        # EXTERNAL-SOURCE HOOK: the loop just waited for the source (skip one zero poll);
-        # whether the source is external (it may name its fd: TimeSource.io_fd).
-        self._source_polled = False
+        # I/O was polled after callbacks last ran: what that poll made ready is what
+        # asyncio's per-iteration select would have, so neither the run of those callbacks
+        # nor a move of time needs another zero-timeout poll first.
+        self._io_fresh = False
+        # EXTERNAL-SOURCE HOOK: whether the source is external (it may name its fd:
+        # TimeSource.io_fd).
         self._source_external = source.external
         self._sim_clock: SimClock | None = None
 
@@ -413,11 +416,15 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         wake_next = core.wake_next
         while True:
             io_registered = len(io_map) > self._quiet_fds  # OUTSIDE HOOK: signals too
-            if io_registered:
-                if self._source_polled:  # EXTERNAL-SOURCE HOOK: see _wait_source
-                    self._source_polled = False
-                elif not (self._source_external and self._source_alone()):
-                    self._poll_io(0)  # what arrives is handled at the current sim time
+            # One poll between runs of callbacks, as asyncio's select: here when callbacks
+            # are ready, else in the rule (time_held, before time moves, or a wait).
+            if (
+                io_registered
+                and (ready or self._stopping)
+                and not self._io_fresh
+                and not (self._source_external and self._source_alone())
+            ):
+                self._poll_io(0)  # what arrives is handled at the current sim time
             if not ready and not self._stopping:
                 # The short path when nothing else can matter (no pacing, no I/O, no outside
                 # work, no other thread, not an external source): straight to the next
@@ -440,6 +447,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             # below schedule for the same instant waits for the next iteration, as in asyncio.
             due = core.take_due()
             if ready:
+                self._io_fresh = False
                 debug = self._debug
                 for _ in range(len(ready)):
                     handle = ready.popleft()
@@ -505,12 +513,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """EXTERNAL-SOURCE HOOK: wait for an external source's news (serving all I/O).
 
         The source's reader runs when its fd is readable; then the kernel is asked again
-        at once: the zero-timeout poll that usually precedes the rule is skipped once
-        after this wait (it just polled), and also whenever the only registered I/O is
-        the source's own fd (``TimeSource.io_fd``), which the source reads when asked.
+        at once (this wait was the poll). No zero-timeout poll comes first whenever the
+        only registered I/O is the source's own fd (``TimeSource.io_fd``), which the
+        source reads when asked.
         """
         self._poll_io(_EXTERNAL_POLL)
-        self._source_polled = True
 
     def _source_alone(self) -> bool:
         """EXTERNAL-SOURCE HOOK: the only thing outside the loop is an external source's
@@ -576,12 +583,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # reply, just delivered while the thread went back to waiting) are handled first:
         # the kernel finds them ready and does not advance.
         if len(self._io_map) > self._quiet_fds:
-            if self._epoll:
-                self._hand_over_tty_input()
-            self._poll_io(0)
+            terminals = self._epoll and self._hand_over_tty_input()
+            if terminals or not self._io_fresh:
+                self._poll_io(0)
         return False
 
-    def _hand_over_tty_input(self) -> None:
+    def _hand_over_tty_input(self) -> bool:
         """Bytes written to a terminal the loop reads (a pty) reach its read queue through
         the kernel's tty work queue, a moment after the write; epoll does not see them
         until that work has run, but ``poll()`` on the descriptor runs it at once (Linux's
@@ -595,7 +602,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         This runs before every advance with I/O registered, so the poll object is kept and
         rebuilt only when the registered descriptors (or the accounted ones) change: poll()
         registers fd numbers, so a reused number polls whatever it now is, as the selector
-        does. An unchanged advance makes one system call and allocates nothing."""
+        does. An unchanged advance makes one system call and allocates nothing. True if it
+        polled (the selector must be polled after it)."""
         registered = self._io_map.keys()
         if registered != self._tty_built_for:
             accounted, self_pipe = self._accounted_fds, self._self_pipe_fd
@@ -606,8 +614,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 for fd in fds:
                     poller.register(fd, select.POLLIN)
             self._tty_poller, self._tty_built_for = poller, set(registered)
-        if self._tty_poller is not None:
-            self._tty_poller.poll(0)
+        if self._tty_poller is None:
+            return False
+        self._tty_poller.poll(0)
+        return True
 
     def could_wake(self) -> bool:
         """Could anything outside wake a task with nothing scheduled? (I/O, signal
@@ -630,6 +640,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
         event_list = self._selector.select(timeout)
+        self._io_fresh = True
         if event_list:
             self._process_events(event_list)
         return bool(self._ready)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import socket
 
 import pytest
 
@@ -87,6 +88,41 @@ def test_all_work_at_a_time_finishes_before_time_advances() -> None:
     evclock.run(main())
     assert log[-1] == ("after", 1.0)
     assert all(t == 0.0 for _, t in log[:-1])
+
+
+def test_io_is_polled_once_per_move_of_time_and_handled_at_the_time_it_arrived() -> None:
+    """With I/O registered, the loop polls once before time moves (so bytes that arrived
+    are handled at the time they arrived), and not again before running what the move
+    made due: one poll per move, as asyncio's one select per iteration."""
+    polls = 0
+
+    async def main() -> list[tuple[float, bytes]]:
+        nonlocal polls
+        loop = asyncio.get_running_loop()
+        ours, theirs = socket.socketpair()
+        got: list[tuple[float, bytes]] = []
+        loop.add_reader(ours, lambda: got.append((loop.time(), ours.recv(16))))
+        select = loop._selector.select  # type: ignore[attr-defined]
+
+        def counting_select(timeout: float | None = None) -> object:
+            nonlocal polls
+            polls += 1
+            return select(timeout)
+
+        loop._selector.select = counting_select  # type: ignore[attr-defined]
+        for _ in range(100):
+            await asyncio.sleep(0.001)
+        theirs.send(b"late")  # arrives at 0.1 s: handled then, before the next move
+        await asyncio.sleep(0.001)
+        loop.remove_reader(ours)
+        ours.close()
+        theirs.close()
+        return got
+
+    got = evclock.run(main())
+    assert got == [(0.1, b"late")]
+    # One per move (101), and the one that found the bytes (time did not move then).
+    assert polls == 102  # 203 when the loop also polled before running what a move made due
 
 
 def test_sleep_until_and_now_are_sim_times() -> None:

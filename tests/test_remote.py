@@ -165,6 +165,48 @@ def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -
     assert seen == [(10_000_000, 10_000_000), (20_000_000, 20_000_000), (30_000_000, 30_000_000)]
 
 
+def test_a_lockstep_round_costs_the_server_one_zero_timeout_poll(tmp_path: Path) -> None:
+    """Per round the server waits for the DONE (a blocking poll) and polls once more before
+    time moves, as asyncio's select once per iteration: not again before running what the
+    DONE or the move made ready. Only zero-timeout polls are counted (how many blocking waits
+    time out depends on the machine's speed), and the server's keepalives (every 0.2 s of
+    wall time, one more callback each) are counted to be allowed for."""
+    url = address(tmp_path)
+    rounds = 200
+    proc = spawn(tmp_path, TICKER, str(rounds), EVCLOCK_CLOCK=f"{url}?name=ticker")
+    zero_polls = keepalives = 0
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        async with evclock.serve(url) as server:
+            await server.wait_for_participants("ticker")
+            select = loop._selector.select  # type: ignore[attr-defined]
+
+            def counting_select(timeout: float | None = None) -> object:
+                nonlocal zero_polls
+                zero_polls += timeout == 0
+                return select(timeout)
+
+            loop._selector.select = counting_select  # type: ignore[attr-defined]
+            keepalive = server._keepalive
+
+            def counting_keepalive() -> None:
+                nonlocal keepalives
+                keepalives += 1
+                keepalive()
+
+            server._keepalive = counting_keepalive  # type: ignore[method-assign]
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    assert len(json.loads(out)) == rounds + 1
+    # One per round, a few around the join and the leave, at most two per keepalive (one
+    # callback between two rounds). Three per round before.
+    assert rounds <= zero_polls <= rounds + 10 + 2 * keepalives, (zero_polls, keepalives)
+
+
 @pytest.mark.pybullet
 def test_follower_sees_every_physics_step_and_never_holds_the_simulation(tmp_path: Path) -> None:
     from evclock import PyBulletTimeSource
