@@ -41,6 +41,7 @@ import math
 import os
 import random
 import re
+import statistics
 import subprocess
 import sys
 import time
@@ -462,11 +463,14 @@ class Cost:
         empty, _ = instructions(variant, tasks, 0, seed, hz, hash_seed)
         units = tasks * count
         self.instr = (full - empty) / units
-        self.ns = math.nan
-        if timed:
-            wall_full = wall(variant, tasks, count, seed, hz)
-            wall_empty = wall(variant, tasks, 0, seed, hz)
-            self.ns = (wall_full - wall_empty) / units * 1e9
+        self.ns = wall_ns(variant, tasks, count, seed, hz) if timed else math.nan
+
+
+def wall_ns(variant: str, tasks: int, count: int, seed: int, hz: float = 0.0) -> float:
+    """Wall nanoseconds per unit: (full run - empty run) / units, in plain processes."""
+    full = wall(variant, tasks, count, seed, hz)
+    empty = wall(variant, tasks, 0, seed, hz)
+    return (full - empty) / (tasks * count) * 1e9
 
 
 def _row(name: str, cost: Cost, base: Cost, against: str) -> str:
@@ -516,6 +520,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("wall", repr(time.perf_counter() - start))
         return 0
     parts = args.only or ["fanout", "timeouts", "scale", "kuka"]
+    if args.hash_seeds < 1:
+        raise SystemExit("--hash-seeds must be at least 1")
     print(
         f"python {sys.version.split()[0]}; per wakeup: instructions under callgrind and wall "
         f"ns (best of {WALL_REPEAT} plain runs), (full run - empty run) / wakeups"
@@ -555,8 +561,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"\nkuka: {steps} physics steps at 240 Hz, per step; throughput ratio = "
             "synchronous loop's cost / evclock's"
         )
-        if args.hash_seeds < 1:
-            raise SystemExit("--hash-seeds must be at least 1")
         # "no watch": PyBulletTimeSource(watch_time_step=False), what the time-step watch
         # (one getPhysicsEngineParameters call per advance, on by default) costs.
         variants = ("kuka evclock", "kuka evclock, no time-step watch")
@@ -577,17 +581,14 @@ def main(argv: Sequence[str] | None = None) -> int:
                     row += f"{ev.instr:>12,.0f}{ratios[name][-1]:>8.3f}"
                 print(row + "   final states bit-identical")
             # Wall time once per variant, in plain runs (random string-hash seeds).
-            sync_ns = wall("kuka sync", 1, steps, args.seed, hz) - wall(
-                "kuka sync", 1, 0, args.seed, hz
+            wall_ratio = wall_ns("kuka sync", 1, steps, args.seed, hz) / wall_ns(
+                "kuka evclock", 1, steps, args.seed, hz
             )
-            ev_ns = wall("kuka evclock", 1, steps, args.seed, hz) - wall(
-                "kuka evclock", 1, 0, args.seed, hz
-            )
-            means = [sum(ratios[name]) / len(ratios[name]) for name in variants]
+            means = [statistics.fmean(ratios[name]) for name in variants]
             print(
                 f"  {hz:>7g} Hz  mean of {args.hash_seeds} seeds: {means[0]:.3f} (from "
                 f"{min(ratios[variants[0]]):.3f} to {max(ratios[variants[0]]):.3f}), no watch "
-                f"{means[1]:.3f}; wall time (evclock): {sync_ns / ev_ns:.3f}"
+                f"{means[1]:.3f}; wall time (evclock): {wall_ratio:.3f}"
             )
     return 0
 
