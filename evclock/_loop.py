@@ -264,8 +264,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # clock server's participant connections): not inferred as work in flight.
         self._accounted_fds: set[int] = set()  # membership only, never iterated
         # I/O was polled after callbacks last ran: what that poll made ready is what
-        # asyncio's per-iteration select would have, so neither the run of those callbacks
-        # nor a move of time needs another zero-timeout poll first.
+        # asyncio's per-iteration select would have, so running those callbacks needs no
+        # other zero-timeout poll first (a move of time always polls: time_held).
         self._io_fresh = False
         # EXTERNAL-SOURCE HOOK: whether the source is external (it may name its fd:
         # TimeSource.io_fd).
@@ -579,16 +579,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             target = self._core.next_deadline()
             if target is None or target - self._core.now_ns > horizon:
                 return True
-        # Time may move. Bytes that arrived since this iteration polled (a peer thread's
-        # reply, just delivered while the thread went back to waiting) are handled first:
-        # the kernel finds them ready and does not advance.
+        # Time may move. Bytes that arrived since the last poll (a peer thread's reply, just
+        # delivered while the thread went back to waiting; a signal's byte on the self-pipe
+        # as an alarm hold ends) are handled first: the kernel finds them ready and does not
+        # advance. So this polls even when no callback ran since the last poll.
         if len(self._io_map) > self._quiet_fds:
-            terminals = self._epoll and self._hand_over_tty_input()
-            if terminals or not self._io_fresh:
-                self._poll_io(0)
+            if self._epoll:
+                self._hand_over_tty_input()
+            self._poll_io(0)
         return False
 
-    def _hand_over_tty_input(self) -> bool:
+    def _hand_over_tty_input(self) -> None:
         """Bytes written to a terminal the loop reads (a pty) reach its read queue through
         the kernel's tty work queue, a moment after the write; epoll does not see them
         until that work has run, but ``poll()`` on the descriptor runs it at once (Linux's
@@ -602,8 +603,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         This runs before every advance with I/O registered, so the poll object is kept and
         rebuilt only when the registered descriptors (or the accounted ones) change: poll()
         registers fd numbers, so a reused number polls whatever it now is, as the selector
-        does. An unchanged advance makes one system call and allocates nothing. True if it
-        polled (the selector must be polled after it)."""
+        does. An unchanged advance makes one system call and allocates nothing."""
         registered = self._io_map.keys()
         if registered != self._tty_built_for:
             accounted, self_pipe = self._accounted_fds, self._self_pipe_fd
@@ -614,10 +614,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 for fd in fds:
                     poller.register(fd, select.POLLIN)
             self._tty_poller, self._tty_built_for = poller, set(registered)
-        if self._tty_poller is None:
-            return False
-        self._tty_poller.poll(0)
-        return True
+        if self._tty_poller is not None:
+            self._tty_poller.poll(0)
 
     def could_wake(self) -> bool:
         """Could anything outside wake a task with nothing scheduled? (I/O, signal

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import signal
 import socket
 
 import pytest
@@ -123,6 +124,37 @@ def test_io_is_polled_once_per_move_of_time_and_handled_at_the_time_it_arrived()
     assert got == [(0.1, b"late")]
     # One per move (101), and the one that found the bytes (time did not move then).
     assert polls == 102  # 203 when the loop also polled before running what a move made due
+
+
+def test_a_signal_that_arrives_as_outside_work_ends_is_handled_before_time_moves() -> None:
+    """The loop polls right before time moves, even when its last poll (a wait for outside
+    work that timed out) ran no callback: the work can end, and a signal arrive, in between
+    (as when a timer signal ends an ``alarm`` hold: the signal's byte is on the self-pipe)."""
+    from evclock._outside import EXACT
+
+    async def main() -> list[float]:
+        loop = asyncio.get_running_loop()
+        handled: list[float] = []
+        loop.add_signal_handler(signal.SIGUSR1, lambda: handled.append(loop.time()))
+        outside = loop._outside  # type: ignore[attr-defined]
+        holder = outside.holder
+        checks = 0
+
+        def work_that_ends_on_the_second_check() -> str | None:
+            nonlocal checks
+            checks += 1
+            if checks == 1:
+                return EXACT  # held: the loop waits for it (a bounded wait that times out)
+            if checks == 2:
+                signal.raise_signal(signal.SIGUSR1)  # it ends, and a signal comes as it does
+            return holder()
+
+        outside.holder = work_that_ends_on_the_second_check
+        await asyncio.sleep(1)
+        loop.remove_signal_handler(signal.SIGUSR1)
+        return handled
+
+    assert evclock.run(main()) == [0.0]
 
 
 def test_sleep_until_and_now_are_sim_times() -> None:
