@@ -486,42 +486,47 @@ class SimCore:
         heap = self._heap
         at = self._at
         virtual = self._virtual
-        # The common case first: one pending wait alone at the next deadline (deadlines are
-        # distinct), later than now, on the default source: a clock.sleep future or
+        # The common case first: one task waits alone at the next deadline (deadlines are
+        # distinct), later than now, on the default source, on a clock.sleep future or on
         # asyncio.sleep's timer (a cancelled timer has no callback).
-        if virtual is not None and heap and heap[0] > self.now_ns:
+        if virtual is not None and heap:
             when = heap[0]
-            entry = at[when]
-            if type(entry) is _Future:
-                fut, result = entry, None
-            elif (
-                isinstance(entry, _TimerHandle) and entry._callback is _SET_RESULT_UNLESS_CANCELLED
-            ):
-                fut, result = entry._args
-            else:
-                fut = None
-            if fut is not None and not fut.done():
-                virtual._now = self.now_ns = when
-                _heappop(heap)
-                del at[when]
-                if fut is not entry:
-                    entry._scheduled = False
-                callbacks = fut._callbacks
-                # one task waits: wake it here (as below; inlined in both, as the hot paths
-                # of virtual time and of stepping sources)
-                if len(callbacks) == 1 and type(fut) is _Future:
-                    callback, ctx = callbacks[0]
-                    fut.remove_done_callback(callback)
-                    fut.set_result(result)
-                    try:
-                        ctx.run(callback, fut)
-                    except (SystemExit, KeyboardInterrupt):
-                        raise
-                    except BaseException as exc:
-                        self._report_wakeup_error(exc)
+            if when > self.now_ns:
+                entry = at[when]
+                if type(entry) is _Future:
+                    fut, result = entry, None
+                elif (
+                    isinstance(entry, _TimerHandle)
+                    and entry._callback is _SET_RESULT_UNLESS_CANCELLED
+                ):
+                    fut, result = entry._args
+                    entry._scheduled = False  # leaves the heap below (else restored)
                 else:
-                    self._wake_in_place(fut, result)
-                return True
+                    fut = None
+                if fut is not None:
+                    try:
+                        # Exactly one done-callback (a task's wake-up): the future is
+                        # pending, as a future drops its callbacks when it completes.
+                        ((callback, ctx),) = fut._callbacks
+                    except (TypeError, ValueError, AttributeError):
+                        # done, several waiters, none, not a future: below
+                        if fut is not entry:
+                            entry._scheduled = True
+                    else:
+                        virtual._now = self.now_ns = when
+                        _heappop(heap)
+                        del at[when]
+                        # wake the task here (as below; inlined in both, as the hot paths
+                        # of virtual time and of stepping sources)
+                        fut.remove_done_callback(callback)
+                        fut.set_result(result)
+                        try:
+                            ctx.run(callback, fut)
+                        except (SystemExit, KeyboardInterrupt):
+                            raise
+                        except BaseException as exc:
+                            self._report_wakeup_error(exc)
+                        return True
         # Every other case: timers, buckets, dead entries, stepping sources, entries due now.
         while heap:
             when = heap[0]

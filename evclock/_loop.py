@@ -129,11 +129,10 @@ class _SimTimer(events.TimerHandle):
     def cancel(self) -> None:
         if self._cancelled:
             return
-        loop: Any = self._loop
         if self._scheduled:  # still in the kernel's heap: counted there, to purge it
-            loop._core.timer_cancelled()
+            self._loop._core.timer_cancelled()  # type: ignore[attr-defined]
         self._cancelled = True
-        if loop._debug:
+        if self._loop._debug:  # type: ignore[attr-defined]
             self._repr = repr(self)  # type: ignore[assignment]  # as Handle.cancel (to log the callback afterwards)
         self._callback = None  # type: ignore[assignment]
         self._args = None  # type: ignore[assignment]
@@ -309,14 +308,15 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     ) -> asyncio.TimerHandle:
         # Hot path (every asyncio.sleep and timeout): one frame, no call_at hop (measured
         # with benchmarks/instructions.py).
-        if delay is None:
-            raise TypeError("delay must not be None")
-        if not -_MAX_TIME_S < delay < _MAX_TIME_S:
+        core = self._core
+        try:
+            when_ns = core.now_ns + round(delay * 1e9)
+        except (TypeError, ValueError, OverflowError):  # None, NaN, infinite, not a number
+            if delay is None:
+                raise TypeError("delay must not be None") from None
             return self.call_at(self.time() + delay, callback, *args, context=context)
         if self._closed:
             self._check_closed()
-        core = self._core
-        when_ns = core.now_ns + round(delay * 1e9)
         if self._debug:
             timer = _SimTimer(when_ns / 1_000_000_000, callback, args, self, context)
             self._check_debug(timer, callback, "call_later")
@@ -415,26 +415,26 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         core = self._core
         wake_next = core.wake_next
         while True:
-            io_registered = len(io_map) > self._quiet_fds  # OUTSIDE HOOK: signals too
-            # One poll between runs of callbacks, as asyncio's select: here when callbacks
-            # are ready, else in the rule (time_held, before time moves, or a wait).
-            if (
-                io_registered
-                and (ready or self._stopping)
-                and not self._io_fresh
-                and not (self._source_external and self._source_alone())
-            ):
-                self._poll_io(0)  # what arrives is handled at the current sim time
-            if not ready and not self._stopping:
+            if ready or self._stopping:
+                # One poll between runs of callbacks, as asyncio's select: here when
+                # callbacks are ready, else in the rule (time_held, before time moves, or a
+                # wait).
+                if (
+                    len(io_map) > self._quiet_fds  # OUTSIDE HOOK: real I/O or signals
+                    and not self._io_fresh
+                    and not (self._source_external and self._source_alone())
+                ):
+                    self._poll_io(0)  # what arrives is handled at the current sim time
+            else:
                 # The short path when nothing else can matter (no pacing, no I/O, no outside
                 # work, no other thread, not an external source): straight to the next
                 # deadline and what is due there. Otherwise the full rule.
                 if (
                     self._fast_path
-                    and not io_registered
+                    and len(io_map) <= self._quiet_fds
                     and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
                     and (
-                        len(_thread_registry) + len(_thread_limbo) <= 1
+                        (not _thread_limbo and len(_thread_registry) <= 1)
                         or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
                     )
                 ):
