@@ -394,9 +394,8 @@ class SimCore:
 
     def _wake_in_place(self, fut: asyncio.Future[Any], result: object) -> None:
         """Resolve ``fut`` and run its done-callbacks right here (no call_soon hop)."""
-        callbacks = fut._callbacks
-        if type(fut) is not _Future:
-            callbacks = list(callbacks)  # the pure-Python future returns its own list
+        # a copy (the pure-Python future returns its own list; a C one None when empty)
+        callbacks = list(fut._callbacks or ())
         for callback, _ctx in callbacks:
             fut.remove_done_callback(callback)
         fut.set_result(result)
@@ -575,9 +574,11 @@ class SimCore:
             else:
                 fut, result = obj, None  # a future of another type (a foreign loop's)
             if fut is not None and not fut.done():
-                callbacks = fut._callbacks
-                if len(callbacks) == 1 and type(fut) is _Future:  # one task waits: inline
-                    callback, ctx = callbacks[0]
+                try:
+                    ((callback, ctx),) = fut._callbacks  # one task waits: inline
+                except (TypeError, ValueError):
+                    self._wake_in_place(fut, result)  # several waiters, or none
+                else:
                     fut.remove_done_callback(callback)
                     fut.set_result(result)
                     try:
@@ -586,8 +587,6 @@ class SimCore:
                         raise
                     except BaseException as exc:
                         self._report_wakeup_error(exc)
-                else:
-                    self._wake_in_place(fut, result)
                 return True
         self.fire(self._pop_due(now, list(obj) if type(obj) is _Bucket else [obj]), ready)
         return True

@@ -237,3 +237,57 @@ def test_a_pure_python_future_due_by_timer_wakes_every_waiter() -> None:
         return woke, loop.time()
 
     assert evclock.run(main()) == (["a", "b"], 2.0)
+
+
+def test_sleep_timers_whose_futures_ended_elsewhere_fire_as_on_stock_asyncio() -> None:
+    """The timer asyncio.sleep uses, next due, with its future already ended by something
+    else (resolved by hand, cancelled, awaited by nobody): time moves to it and it fires as
+    asyncio's does (the resolved one reports InvalidStateError at its time), and a sleep due
+    after it still wakes exactly once, at its time."""
+
+    async def main() -> list[Any]:
+        loop = asyncio.get_running_loop()
+        seen: list[Any] = []
+        loop.set_exception_handler(
+            lambda _loop, ctx: seen.append((loop.time(), type(ctx.get("exception")).__name__))
+        )
+        resolved: asyncio.Future[str] = loop.create_future()
+        cancelled: asyncio.Future[None] = loop.create_future()
+        unawaited: asyncio.Future[None] = loop.create_future()
+        handles = [
+            loop.call_later(1.0, _SET_RESULT_UNLESS_CANCELLED, resolved, None),
+            loop.call_later(2.0, _SET_RESULT_UNLESS_CANCELLED, cancelled, None),
+            loop.call_later(2.5, _SET_RESULT_UNLESS_CANCELLED, unawaited, "late"),
+        ]
+        resolved.set_result("by hand")
+        cancelled.cancel()
+        await asyncio.sleep(3.0)
+        seen.append(("woke", loop.time(), resolved.result(), unawaited.result()))
+        for handle in handles:
+            handle.cancel()
+        await asyncio.sleep(1.0)
+        seen.append(("end", loop.time(), [h.cancelled() for h in handles]))
+        return seen
+
+    with asyncio.Runner(loop_factory=SimEventLoop) as runner:
+        on_sim = runner.run(main())
+    with asyncio.Runner(loop_factory=ReferenceLoop) as runner:
+        on_reference = runner.run(main())
+    assert on_sim == on_reference
+    assert on_sim[0] == (1.0, "InvalidStateError")
+
+
+def test_a_clock_sleep_nobody_awaits_yet_still_ends_at_its_time() -> None:
+    """A sim-time wait created now and awaited later (no task waits on it when it is due)."""
+
+    async def main() -> tuple[float, bool, float]:
+        clock = evclock.clock()
+        early = clock.sleep(1.0)
+        await clock.sleep(2.0)
+        done_at_two = early.done()
+        await early  # already over: no wait
+        return clock.now().seconds, done_at_two, 2.0
+
+    now, done_at_two, expected = evclock.run(main())
+    assert done_at_two is True
+    assert now == expected
