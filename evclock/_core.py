@@ -78,6 +78,9 @@ class _Bucket(list[Any]):
 
 
 _Future = asyncio.Future
+# asyncio's own lookup of the running loop (exported, underscored): a future created with no
+# loop= on the running loop is bound to it, found in C.
+_running_loop = asyncio._get_running_loop
 # asyncio.sleep() schedules this function through call_later(); the kernel recognises it to
 # resolve the sleep's future exactly as the handle would (asyncio private, no public name).
 _SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
@@ -106,7 +109,11 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
     if when > MAX_TIME_NS:
         raise InvalidArgumentError(format_time_range_error("the wait", when))
     loop = core.future_loop
-    fut = _Future(loop=loop) if loop is not None else core.future_factory()
+    if loop is not None and _running_loop() is loop:
+        # on the running loop, found in C (a loop= keyword costs a dict on every call)
+        fut: asyncio.Future[None] = _Future()
+    else:
+        fut = _Future(loop=loop) if loop is not None else core.future_factory()
     if core._at.setdefault(when, fut) is fut:
         _heappush(core._heap, when)
     else:
@@ -126,7 +133,11 @@ def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
     elif when_ns > MAX_TIME_NS:
         raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
     loop = core.future_loop
-    fut = _Future(loop=loop) if loop is not None else core.future_factory()
+    if loop is not None and _running_loop() is loop:
+        # on the running loop, found in C (a loop= keyword costs a dict on every call)
+        fut: asyncio.Future[None] = _Future()
+    else:
+        fut = _Future(loop=loop) if loop is not None else core.future_factory()
     if core._at.setdefault(when_ns, fut) is fut:
         _heappush(core._heap, when_ns)
     else:

@@ -57,6 +57,7 @@ _T = TypeVar("_T")
 _Ts = TypeVarTuple("_Ts")
 
 _Future = asyncio.Future
+_running_loop = asyncio._get_running_loop
 _read_debug = operator.attrgetter("_debug")
 # Read on every advance: threading.active_count() would take a lock each time.
 _thread_registry: dict[int, threading.Thread] = threading._active  # type: ignore[attr-defined]
@@ -130,9 +131,9 @@ class _SimTimer(events.TimerHandle):
         if self._cancelled:
             return
         if self._scheduled:  # still in the kernel's heap: counted there, to purge it
-            self._loop._core.timer_cancelled()  # type: ignore[attr-defined]
+            self._loop._core.timer_cancelled()
         self._cancelled = True
-        if self._loop._debug:  # type: ignore[attr-defined]
+        if self._loop._debug:
             self._repr = repr(self)  # type: ignore[assignment]  # as Handle.cancel (to log the callback afterwards)
         self._callback = None  # type: ignore[assignment]
         self._args = None  # type: ignore[assignment]
@@ -221,9 +222,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
         # every callback: answer from C, without a Python frame (set_debug() sets _debug).
         self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
-        # Likewise create_future() (asyncio.sleep, wait_for, ...): BaseEventLoop's is a Python
-        # method returning exactly this.
-        self.create_future = functools.partial(_Future, loop=self)  # type: ignore[method-assign]
         self._source = source
         core.future_loop = self  # waits are possible from now until close()
         # Registered file descriptors, read on every iteration: the selector's own dict when
@@ -270,6 +268,13 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # TimeSource.io_fd).
         self._source_external = source.external
         self._sim_clock: SimClock | None = None
+
+    def create_future(self) -> asyncio.Future[Any]:
+        # asyncio.sleep, wait_for, ...: a future on this loop, as BaseEventLoop's, made
+        # without the loop= keyword (a dict on every call) when this loop runs here.
+        if _running_loop() is self:
+            return _Future()
+        return _Future(loop=self)
 
     # ----------------------------------------------------------------- time
 

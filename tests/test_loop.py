@@ -3,13 +3,15 @@
 from __future__ import annotations
 
 import asyncio
+import math
 import signal
 import socket
+from typing import Any
 
 import pytest
 
 import evclock
-from evclock import Duration, Time
+from evclock import Duration, InvalidArgumentError, SimEventLoop, Time
 
 
 def test_time_jumps_exactly_to_the_next_deadline() -> None:
@@ -329,3 +331,46 @@ def test_a_dropped_failed_task_is_reported_at_once(debug: bool) -> None:
             loop.close()
     finally:
         gc.enable()
+
+
+def test_call_later_odd_delays_behave_as_documented() -> None:
+    """None is asyncio's TypeError; NaN and -inf are not times; +inf and delays beyond sim
+    time's range never fire; a huge negative delay is due at once."""
+
+    async def main() -> list[str]:
+        loop = asyncio.get_running_loop()
+        fired: list[str] = []
+        with pytest.raises(TypeError, match=r"^delay must not be None$"):
+            loop.call_later(None, fired.append, "none")  # type: ignore[arg-type]
+        for bad in (math.nan, -math.inf):
+            with pytest.raises(InvalidArgumentError, match="needs a finite time"):
+                loop.call_later(bad, fired.append, "bad")
+        never = [loop.call_later(d, fired.append, "never") for d in (math.inf, 1e12, 1e300)]
+        loop.call_later(-1e12, fired.append, "at once")
+        await asyncio.sleep(0)
+        await asyncio.sleep(5)
+        assert [h.when() for h in never][1:] == [1e12, 1e300]
+        assert loop.time() == 5.0
+        return fired
+
+    assert evclock.run(main()) == ["at once"]
+
+
+def test_futures_of_the_loop_are_bound_to_it_inside_and_outside_its_run() -> None:
+    """create_future and clock.sleep make futures of this loop whether it runs (the fast
+    construction, from the running loop) or not."""
+    loop = SimEventLoop()
+    try:
+        outside = loop.create_future()
+        assert outside.get_loop() is loop
+
+        async def inside() -> tuple[Any, Any]:
+            fut = loop.create_future()
+            sleep = evclock.clock().sleep(1.0)
+            await sleep
+            return fut.get_loop(), sleep.get_loop()  # type: ignore[attr-defined]
+
+        assert loop.run_until_complete(inside()) == (loop, loop)
+        outside.cancel()
+    finally:
+        loop.close()
