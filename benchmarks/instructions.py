@@ -37,6 +37,7 @@ import argparse
 import asyncio
 import functools
 import heapq
+import itertools
 import math
 import os
 import random
@@ -121,7 +122,13 @@ def _run_minimal(
 
     try:
         tasks = loop.run_until_complete(start())
-        drive()
+        # The tasks resume on ``loop`` as if it ran them (a future made with no loop= is
+        # bound to the running loop, as evclock's are).
+        asyncio.events._set_running_loop(loop)
+        try:
+            drive()
+        finally:
+            asyncio.events._set_running_loop(None)
         for task in tasks:
             task.result()  # each ran to its end
     finally:
@@ -141,7 +148,7 @@ def future_wake_minimal(rows: list[list[float]]) -> None:
     heappush, heappop = heapq.heappush, heapq.heappop
 
     def sleep(seconds: float) -> asyncio.Future[None]:
-        fut: asyncio.Future[None] = asyncio.Future(loop=loop)
+        fut: asyncio.Future[None] = asyncio.Future()  # on the running loop
         when = now[0] + round(seconds * 1e9)
         present = at.setdefault(when, fut)
         if present is fut:
@@ -176,6 +183,62 @@ def future_wake_minimal(rows: list[list[float]]) -> None:
             entry.remove_done_callback(callback)
             entry.set_result(None)
             ctx.run(callback, entry)
+
+    _run_minimal(loop, rows, worker, drive)
+
+
+def duck_future_minimal(rows: list[list[float]]) -> None:
+    """The least a sleep costs that parks the task on a *Future-compatible object* (asyncio's
+    ``_asyncio_future_blocking`` protocol) instead of a C future: a slotted Python object
+    whose ``add_done_callback`` keeps the task's wake-up, and whose ``result`` is a C
+    callable. Cancellable in principle (the task calls its ``cancel``), but the task takes
+    its generic path for such objects (attribute lookups, a Python ``add_done_callback``).
+    Same harness as :func:`future_wake_minimal`: no loop, time source or validation."""
+    loop = asyncio.new_event_loop()
+    heap: list[int] = []
+    at: dict[int, Any] = {}
+    now = [0]
+    heappush, heappop = heapq.heappush, heapq.heappop
+
+    class Waiter:
+        __slots__ = ("_asyncio_future_blocking", "_callback", "_context")
+        _loop = loop  # read by the task when there is no get_loop()
+        result = itertools.repeat(None).__next__  # a C callable: no frame on wake-up
+
+        def add_done_callback(self, callback: Any, *, context: Any = None) -> None:
+            self._callback = callback
+            self._context = context
+
+    new = object.__new__
+
+    @types.coroutine
+    def sleep(seconds: float) -> Generator[Any, None, None]:
+        waiter = new(Waiter)
+        waiter._asyncio_future_blocking = True
+        when = now[0] + round(seconds * 1e9)
+        present = at.setdefault(when, waiter)
+        if present is waiter:
+            heappush(heap, when)
+        elif type(present) is list:
+            present.append(waiter)
+        else:
+            at[when] = [present, waiter]
+        yield waiter
+
+    async def worker(durations: list[float]) -> None:
+        for d in durations:
+            await sleep(d)
+
+    def drive() -> None:
+        pop = at.pop
+        while heap:
+            now[0] = when = heappop(heap)
+            entry = pop(when)
+            if type(entry) is list:
+                for waiter in entry:
+                    waiter._context.run(waiter._callback, waiter)
+                continue
+            entry._context.run(entry._callback, entry)
 
     _run_minimal(loop, rows, worker, drive)
 
@@ -371,6 +434,7 @@ VARIANTS: dict[str, Callable[[list[list[float]]], None]] = {
     "asyncio.sleep(0) (stock loop)": asyncio_sleep0,
     "simpy timeout": simpy_timeout,
     "future wake, minimal (no loop)": future_wake_minimal,
+    "duck-typed future, minimal (no loop)": duck_future_minimal,
     "bare-yield park, minimal (no loop)": park_minimal,
     "asyncio.timeout (sim loop)": asyncio_timeouts_sim,
     "simpy never | timeout": simpy_timeouts,
@@ -535,6 +599,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             "asyncio.sleep (sim loop)",
             "simpy timeout",
             "future wake, minimal (no loop)",
+            "duck-typed future, minimal (no loop)",
             "bare-yield park, minimal (no loop)",
         ):
             print(_row(name, Cost(name, n, k, seed), floor, "the asyncio.sleep(0) floor"))
