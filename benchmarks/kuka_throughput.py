@@ -30,9 +30,9 @@ from fractions import Fraction
 
 import numpy as np
 import pybullet as p
-from evclock_sims.kuka import REST_POSE, KukaReach
 
 import evclock
+from evclock_sims.kuka import REST_POSE, KukaReach
 
 PHYSICS_HZ = 240
 PLANNER_HZ = 10

@@ -23,10 +23,10 @@ import time
 from typing import Any
 
 import zenoh
-from evclock_sims import get_scenario
 
 import evclock
 from evclock.ros2 import Ros2ClockPublisher, clock_key_expr
+from evclock_sims import get_scenario
 
 
 def run_once(

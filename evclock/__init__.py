@@ -68,7 +68,7 @@ from .sources import (
 if TYPE_CHECKING:
     from ._buffer import Interpolation, TimeBuffer
 
-__version__ = "0.1.0"
+    __version__: str
 
 __all__ = [
     "ApproximateTimeSynchronizer",
@@ -175,6 +175,12 @@ __all__ = [
 
 
 def __getattr__(name: str) -> Any:
+    # The version has one source, the installed distribution's metadata (pyproject.toml);
+    # importlib.metadata is read on first use, not on `import evclock`.
+    if name == "__version__":
+        from importlib.metadata import version
+
+        return version("evclock")
     # TimeBuffer needs numpy: it is imported on first use, so `import evclock` stays light.
     if name in ("Interpolation", "TimeBuffer"):
         from . import _buffer

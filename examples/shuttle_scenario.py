@@ -16,9 +16,9 @@ from collections.abc import Coroutine
 from typing import Any
 
 import pybullet as p
-from evclock_sims import ClockLike, Scenario
 
 import evclock
+from evclock_sims import ClockLike, Scenario
 
 SLIDER = 0  # cartpole.urdf: the prismatic cart joint
 POLE = 1

@@ -1,5 +1,12 @@
-"""Shared set-up of the test suite: the repository root on sys.path (for ``examples``), and
-the PyBullet rule, Ctrl-C for child processes.
+"""Shared set-up of the test suite: the repository root on sys.path (for ``examples``), the
+evclock under test, the PyBullet rule, Ctrl-C for child processes.
+
+The repository root is *appended* to sys.path, so an installed evclock is imported before
+a package folder beside the tests. CI tests the installed wheel from a copy of the
+repository without the package folders (so that no child process a test starts can import
+them either), with ``EVCLOCK_TEST_INSTALLED=1``: the session then refuses to start if evclock
+comes from an ``evclock/`` folder of the tree under test. The header line names the evclock
+that runs.
 
 PyBullet publishes wheels for CPython 3.11 only, so the ``test`` extra installs it there and
 nowhere else. Tests that need it are skipped where it is missing - whole modules through
@@ -14,6 +21,7 @@ exits), and the failures before it would otherwise be lost with the summary.
 from __future__ import annotations
 
 import importlib.util
+import os
 import signal
 import sys
 from pathlib import Path
@@ -22,7 +30,8 @@ import pytest
 
 ROOT = Path(__file__).resolve().parent.parent
 if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+    sys.path.append(str(ROOT))
+INSTALLED_ONLY = os.environ.get("EVCLOCK_TEST_INSTALLED") == "1"
 
 HAVE_PYBULLET = importlib.util.find_spec("pybullet") is not None
 _PYBULLET_WHEELS = sys.version_info < (3, 12)  # as the test extra's marker says
@@ -35,11 +44,26 @@ def pytest_configure(config: pytest.Config) -> None:
         # ignored, and so would every child it starts; the tests that press Ctrl-C on a child
         # (a sweep, the dashboard) need it delivered, as from a terminal.
         signal.signal(signal.SIGINT, signal.default_int_handler)
+    import evclock
+
+    location = Path(evclock.__file__).resolve()
+    if INSTALLED_ONLY and location.is_relative_to(ROOT / "evclock"):
+        raise pytest.UsageError(
+            f"EVCLOCK_TEST_INSTALLED=1 but evclock is imported from the tree under test "
+            f"({location}): install the wheel, and run the tests from a copy of the "
+            "repository without evclock/ (as .ci/run does)"
+        )
     if _PYBULLET_WHEELS and not HAVE_PYBULLET:
         raise pytest.UsageError(
             "PyBullet is missing, and on this Python the full suite needs it: "
             "pip install -e '.[test]' installs it"
         )
+
+
+def pytest_report_header() -> str:
+    import evclock
+
+    return f"evclock {evclock.__version__} from {Path(evclock.__file__).resolve().parent}"
 
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:

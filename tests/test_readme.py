@@ -66,7 +66,7 @@ def test_scenario_snippet_runs_with_the_command(tmp_path: Path) -> None:
 
 def test_set_up_commands_fit_a_user_and_match_ci() -> None:
     """The main-job command installs only what the main job needs; the test command installs
-    the test extra itself and is what .ci/run runs on every Python."""
+    the test extra itself and is what .ci/run runs on every Python (there against the wheel)."""
     text = README.read_text()
     setup = text[text.index("## Set-up") : text.index("## Quickstart")]
     main_job, tests = (block.strip() for block in re.findall(r"```bash\n(.*?)```", setup, re.S))
@@ -76,11 +76,14 @@ def test_set_up_commands_fit_a_user_and_match_ci() -> None:
     )
     assert tests == '.venv/bin/pip install -e ".[test]" && .venv/bin/python -m pytest'
     ci = (README.parent / ".ci" / "run").read_text()
-    assert 'pip install --quiet -e ".[$3]"' in ci
+    # CI runs the same pytest against the built wheel, installed with the same extra.
+    assert 'pip install --quiet "$WHEEL[$3]"' in ci
     assert 'fresh_venv .venv "$PY311" test,lint,conformance\n' in ci
-    assert 'fresh_venv ".venv-$version" "${!python_var}" test\n' in ci
-    assert '".venv-$version/bin/python" -m pytest\n' in ci
+    assert 'wheel_venv ".venv-$version" "${!python_var}" test\n' in ci
+    assert 'installed_tests ".venv-$version"\n' in ci
+    assert '"$OLDPWD/$1/bin/python" -m pytest\n' in ci
     # Conformance: test_asyncio on every supported Python, anyio's suite too on 3.11.
     assert 'conformance ".venv-$version" asyncio\n' in ci
     assert "conformance .venv all\n" in ci
-    assert ci.rstrip().endswith(".venv/bin/python -m pytest")
+    last = 'wheel_venv .venv-wheel "$PY311" test\ninstalled_tests .venv-wheel'
+    assert ci.rstrip().endswith(last)

@@ -26,6 +26,7 @@ import pytest
 # makes a missing PyBullet an error on 3.11).
 pytest.importorskip("pybullet", reason="PyBullet is not installed: pip install 'evclock[pybullet]'")
 import pybullet as p
+
 from evclock_sims import PHYSICS_HZ, SCENARIOS, ClockLike, get_scenario
 
 NS_PER_S = 1_000_000_000

@@ -22,6 +22,7 @@ import logging
 import math
 
 import uvicorn
+
 from evclock_sims import SCENARIOS
 
 from .app import create_app

@@ -24,6 +24,7 @@ import time
 from collections.abc import Callable
 
 import pybullet as p
+
 from evclock_sims import Scenario, get_scenario
 
 try:

@@ -20,9 +20,9 @@ from types import TracebackType
 from typing import Any, Literal, cast
 
 import pybullet as p
-from evclock_sims import Scenario, get_scenario
 
 from evclock import PyBulletTimeSource, Rate, SimDriver
+from evclock_sims import Scenario, get_scenario
 
 from .config import DashboardConfig
 from .scene import SceneView, WorldPose, camera_for, read_world_pose

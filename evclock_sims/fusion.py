@@ -23,7 +23,7 @@ import asyncio
 import math
 from collections.abc import Coroutine
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import pybullet as p
@@ -212,7 +212,8 @@ class LandmarkFusion(Scenario):
         positions: evclock.TimeBuffer,
         orientations: evclock.TimeBuffer,
     ) -> None:
-        async for odometry, detection in sync:
+        async for group in sync:
+            odometry, detection = cast(tuple[Odometry, Detection], group)
             stamp = evclock.Time.from_msg(detection.header.stamp, sync.clock.clock_type)
             at_stamp = (positions.at(stamp), orientations.at(stamp))
             paired = (odometry.position, odometry.orientation)
