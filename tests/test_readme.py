@@ -77,7 +77,7 @@ def test_set_up_commands_fit_a_user_and_match_ci() -> None:
     assert tests == '.venv/bin/pip install -e ".[test]" && .venv/bin/python -m pytest'
     ci = (README.parent / ".ci" / "run").read_text()
     # CI runs the same pytest against the built wheel, installed with the same extra.
-    assert 'pip install --quiet "$WHEEL[$3]"' in ci
+    assert 'pip install --quiet "$WHEEL${3:+[$3]}"' in ci
     assert 'fresh_venv .venv "$PY311" test,lint,conformance\n' in ci
     assert 'wheel_venv ".venv-$version" "${!python_var}" test\n' in ci
     assert 'installed_tests ".venv-$version"\n' in ci
