@@ -402,7 +402,7 @@ def kuka_evclock(rows: list[list[float]], watch_time_step: bool = True) -> None:
     import evclock
 
     steps = len(rows[0])
-    source = evclock.PyBulletTimeSource.connect(watch_time_step=watch_time_step)
+    source = evclock.sources.PyBulletTimeSource.connect(watch_time_step=watch_time_step)
     ctl = k.Controllers(source.client, KUKA_HZ)
 
     async def every(hz: float, work: Callable[[], None]) -> None:

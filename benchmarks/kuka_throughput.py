@@ -116,7 +116,7 @@ def run_synchronous(control_hz: float, seconds: float) -> tuple[float, float, in
 def run_evclock(
     control_hz: float, seconds: float, rtf: float | None = None
 ) -> tuple[float, float, int]:
-    source = evclock.PyBulletTimeSource.connect()
+    source = evclock.sources.PyBulletTimeSource.connect()
     ctl = Controllers(source.client, control_hz)
 
     async def every(hz: float, work: object) -> None:

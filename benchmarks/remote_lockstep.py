@@ -54,7 +54,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-CLI = [sys.executable, "-c", "from evclock._cli import main; main()"]
+CLI = [sys.executable, "-c", "from evclock.tools._cli import main; main()"]
 
 SERVER = textwrap.dedent(
     """
@@ -62,7 +62,7 @@ SERVER = textwrap.dedent(
     profile = cProfile.Profile() if os.environ.get("BENCH_CALLS") else None
     async def main():
         count, rounds = int(sys.argv[2]), int(sys.argv[3])
-        async with evclock.serve(sys.argv[1]) as server:
+        async with evclock.remote.serve(sys.argv[1]) as server:
             await server.wait_for_participants(count=count)
             wall0, cpu0 = time.perf_counter(), time.process_time()
             if profile:
@@ -77,7 +77,7 @@ SERVER = textwrap.dedent(
     """
 )
 # Active participants sleep 1 ms at a time (past the measured rounds: the server stops first
-# and they end with ClockLost, as expected); idle ones sleep an hour: no deadline is due.
+# and they end with ClockLostError, as expected); idle ones sleep an hour: no deadline is due.
 # Active ones print the CPU seconds they spent from their first round to the end.
 PARTICIPANT = textwrap.dedent(
     """
@@ -97,7 +97,7 @@ PARTICIPANT = textwrap.dedent(
             await clock.sleep(0.001)
     try:
         evclock.run(main())
-    except evclock.ClockLost:
+    except evclock.ClockLostError:
         pass
     if cpu0 is not None:
         if profile:

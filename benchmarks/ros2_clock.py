@@ -33,7 +33,7 @@ def run_once(
     seconds: float, publisher: Ros2ClockPublisher | None, decimation: int
 ) -> tuple[float, float, int]:
     """Run the scenario for ``seconds`` of sim time; return (CPU s, wall s, steps)."""
-    source = evclock.PyBulletTimeSource.connect()
+    source = evclock.sources.PyBulletTimeSource.connect()
     scenario = get_scenario("cartpole")(source.client, 0)
     if publisher is not None:
         publisher.attach(source, decimation=decimation)

@@ -27,8 +27,9 @@ from collections.abc import Callable
 import numpy as np
 
 import evclock
-from evclock import Time, TimeBuffer
-from evclock._sync_policies import ApproximatePolicy, SlopPolicy
+from evclock import Time
+from evclock.data import TimeBuffer
+from evclock.data._policies import ApproximatePolicy, SlopPolicy
 
 
 def best_of(repeat: int, variants: dict[str, Callable[[], object]]) -> dict[str, float]:

@@ -35,13 +35,13 @@ def main() -> None:
 
     wall0 = time.perf_counter()
     sequential = [
-        evclock.run_scenario(args.scenario, seed=seed, until=args.until) for seed in seeds
+        evclock.tools.run_scenario(args.scenario, seed=seed, until=args.until) for seed in seeds
     ]
     figures = {"sequential": args.runs / (time.perf_counter() - wall0)}
-    specs = evclock.plan(args.scenario, seeds, until=args.until)
+    specs = evclock.tools.plan(args.scenario, seeds, until=args.until)
     for workers in (1, 2):
         wall0 = time.perf_counter()
-        result = evclock.sweep(specs, workers=workers)
+        result = evclock.tools.sweep(specs, workers=workers)
         figures[f"local x{workers}"] = args.runs / (time.perf_counter() - wall0)
         for row, single in zip(result.rows, sequential, strict=True):
             assert row.report is not None, row.error

@@ -44,7 +44,7 @@ from fractions import Fraction
 from typing import Any
 
 import evclock
-from evclock import _precise
+from evclock.kernel import _precise
 
 GOAL_P99_US = 100.0
 

@@ -3,190 +3,235 @@
 An asyncio event loop whose ``time()`` is the simulator's clock: ``asyncio.sleep``,
 timeouts and anyio all follow sim time, time advances only when every task waits, and the
 same controller code runs unchanged on wall time on the real robot.
+
+This namespace holds what a controller author needs: :func:`run`, :func:`clock`, the time
+values, rates, timers, jumps, the loop and driver, and the errors. The rest lives in named
+subpackages, imported on first use so that ``import evclock`` stays light:
+
+* :mod:`evclock.sources`: time sources (virtual, stepping, PyBullet);
+* :mod:`evclock.remote`: sim time across processes (server, participants);
+* :mod:`evclock.ros2`: ROS 2 ``/clock`` over Zenoh;
+* :mod:`evclock.data`: stamped data, synchronisers, buffers, stamp diagnostics;
+* :mod:`evclock.tools`: scenarios, sweeps, recordings, traces, plots;
+* :mod:`evclock.testing`: the pytest plugin.
+
+The layers below them (``evclock.time``, ``evclock.kernel``, ``evclock.outside``,
+``evclock.hosts``) are described in the architecture guide.
 """
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
-from ._clock import Clock, SimClock, WallClock, clock, sim_clock
-from ._config import ENV_CLOCK, ENV_USE_SIM_TIME, register_clock_scheme
-from ._diagnostics import StampDiagnostics, StampWarning, StreamAgeStats, diagnostics_report
-from ._driver import SimDriver
-from ._errors import (
-    ClockJumped,
-    ClockLost,
+from evclock._errors import (
+    ClockJumpedError,
+    ClockLostError,
     ClockMismatchError,
     DeadlockError,
     EvClockError,
-    ExtrapolationError,
     InvalidArgumentError,
     InvalidTypeError,
-    JoinRefused,
     LagError,
     LoopClosedError,
     MissingExtraError,
     NoSimulationError,
     NotRunningError,
     PacingError,
-    ParticipantLost,
     PhysicsError,
-    ProtocolError,
-    RemoteCallError,
-    RemoteClockError,
-    Ros2MessageError,
-    ScenarioError,
     SimDriverError,
     SimTimeLimitError,
     StallError,
-    TimeLookupError,
-    TraceError,
     WrongThreadError,
 )
-from ._jumps import JumpHandle, JumpThreshold, TimeJump
-from ._loop import SimEventLoop
-from ._plot import plot_run, plot_sweep
-from ._rate import LoopStats, Rate, Tick, Timer
-from ._record import record
-from ._remote._participant import RemoteClockSource, participant
-from ._remote._server import ClockServer, Message, serve
-from ._runner import loop_factory, resolve_use_sim_time, run
-from ._runs import LoopReport, RunReport, run_scenario
-from ._scenarios import ENTRY_POINT_GROUP, load_scenario, parameters
-from ._stamped import StampClock, Stamped, StampKey, stamp_of
-from ._sweep import RunSpec, SweepResult, SweepRow, plan, sweep
-from ._sync import ApproximateTimeSynchronizer, TimeSynchronizer
-from ._time import SIM, STEADY, SYSTEM, ClockType, Duration, DurationMsg, Time, TimeMsg
-from ._trace import Divergence, Trace, TraceMessage, first_divergence, read_trace
-from .ros2 import Ros2ClockPublisher, Ros2ClockSource
-from .sources import (
-    PyBulletTimeSource,
-    StepHook,
-    SteppingTimeSource,
-    TimeSource,
-    VirtualTimeSource,
+from evclock.hosts._config import ENV_CLOCK, ENV_USE_SIM_TIME, register_clock_scheme
+from evclock.hosts._current import clock, sim_clock
+from evclock.hosts._driver import SimDriver
+from evclock.hosts._loop import SimEventLoop
+from evclock.hosts._runner import loop_factory, resolve_use_sim_time, run
+from evclock.kernel._clock import Clock, SimClock, WallClock
+from evclock.kernel._jumps import JumpHandle, JumpThreshold, TimeJump
+from evclock.kernel._rate import LoopStats, Rate, Tick, Timer
+from evclock.time._time import (
+    SIM,
+    STEADY,
+    SYSTEM,
+    ClockType,
+    Duration,
+    DurationMsg,
+    Time,
+    TimeMsg,
 )
 
 if TYPE_CHECKING:
-    from ._buffer import Interpolation, TimeBuffer
+    from evclock import (  # noqa: F401  (the subpackages, imported on first use)
+        data,
+        hosts,
+        kernel,
+        outside,
+        remote,
+        ros2,
+        sources,
+        testing,
+        time,
+        tools,
+    )
 
     __version__: str
 
 __all__ = [
-    "ApproximateTimeSynchronizer",
+    "SIM",
+    "STEADY",
+    "SYSTEM",
     "Clock",
-    "ClockJumped",
-    "ClockLost",
+    "ClockJumpedError",
+    "ClockLostError",
     "ClockMismatchError",
-    "ClockServer",
     "ClockType",
     "DeadlockError",
-    "Divergence",
     "Duration",
     "DurationMsg",
-    "ENTRY_POINT_GROUP",
     "ENV_CLOCK",
     "ENV_USE_SIM_TIME",
     "EvClockError",
-    "ExtrapolationError",
-    "Interpolation",
     "InvalidArgumentError",
     "InvalidTypeError",
-    "JoinRefused",
     "JumpHandle",
     "JumpThreshold",
     "LagError",
     "LoopClosedError",
-    "LoopReport",
     "LoopStats",
-    "Message",
     "MissingExtraError",
     "NoSimulationError",
     "NotRunningError",
-    "WrongThreadError",
     "PacingError",
-    "ParticipantLost",
     "PhysicsError",
-    "ProtocolError",
-    "PyBulletTimeSource",
     "Rate",
-    "RemoteCallError",
-    "RemoteClockError",
-    "RemoteClockSource",
-    "Ros2ClockPublisher",
-    "Ros2ClockSource",
-    "Ros2MessageError",
-    "RunReport",
-    "RunSpec",
-    "SIM",
-    "STEADY",
-    "SYSTEM",
-    "ScenarioError",
     "SimClock",
     "SimDriver",
     "SimDriverError",
     "SimEventLoop",
     "SimTimeLimitError",
     "StallError",
-    "StampClock",
-    "StampDiagnostics",
-    "StampKey",
-    "StampWarning",
-    "Stamped",
-    "StepHook",
-    "SteppingTimeSource",
-    "StreamAgeStats",
-    "SweepResult",
-    "SweepRow",
     "Tick",
     "Time",
-    "TimeBuffer",
     "TimeJump",
-    "TimeLookupError",
     "TimeMsg",
-    "TimeSource",
-    "TimeSynchronizer",
     "Timer",
-    "Trace",
-    "TraceError",
-    "TraceMessage",
-    "VirtualTimeSource",
     "WallClock",
+    "WrongThreadError",
     "__version__",
     "clock",
-    "diagnostics_report",
-    "first_divergence",
-    "load_scenario",
     "loop_factory",
-    "parameters",
-    "participant",
-    "plan",
-    "plot_run",
-    "plot_sweep",
-    "read_trace",
-    "record",
     "register_clock_scheme",
     "resolve_use_sim_time",
     "run",
-    "run_scenario",
-    "serve",
     "sim_clock",
-    "stamp_of",
-    "sweep",
 ]
+
+#: Subpackages imported on first attribute access (``evclock.remote.serve``).
+_SUBPACKAGES = frozenset(
+    ("data", "hosts", "kernel", "outside", "remote", "ros2", "sources", "testing", "time", "tools")
+)
+
+#: Names that left this namespace in 0.2.0, and the subpackage that holds each now.
+_MOVED = {
+    **dict.fromkeys(
+        ("PyBulletTimeSource", "StepHook", "SteppingTimeSource", "TimeSource", "VirtualTimeSource"),
+        "sources",
+    ),
+    **dict.fromkeys(
+        (
+            "ClockServer",
+            "Message",
+            "serve",
+            "participant",
+            "RemoteClockSource",
+            "RemoteClockError",
+            "ProtocolError",
+            "RemoteCallError",
+            "JoinRefusedError",
+            "ParticipantLostError",
+        ),
+        "remote",
+    ),
+    **dict.fromkeys(("Ros2ClockPublisher", "Ros2ClockSource", "Ros2MessageError"), "ros2"),
+    **dict.fromkeys(
+        (
+            "ApproximateTimeSynchronizer",
+            "TimeSynchronizer",
+            "StampClock",
+            "Stamped",
+            "StampKey",
+            "stamp_of",
+            "TimeBuffer",
+            "Interpolation",
+            "StampDiagnostics",
+            "StampWarning",
+            "StreamAgeStats",
+            "diagnostics_report",
+            "TimeLookupError",
+            "ExtrapolationError",
+        ),
+        "data",
+    ),
+    **dict.fromkeys(
+        (
+            "run_scenario",
+            "RunReport",
+            "LoopReport",
+            "load_scenario",
+            "parameters",
+            "ENTRY_POINT_GROUP",
+            "sweep",
+            "plan",
+            "RunSpec",
+            "SweepResult",
+            "SweepRow",
+            "record",
+            "read_trace",
+            "Trace",
+            "TraceMessage",
+            "Divergence",
+            "first_divergence",
+            "plot_run",
+            "plot_sweep",
+            "ScenarioError",
+            "TraceError",
+        ),
+        "tools",
+    ),
+}
+#: Names renamed in 0.2.0 (errors now all end in ``Error``).
+_RENAMED = {
+    "ClockJumped": "evclock.ClockJumpedError",
+    "ClockLost": "evclock.ClockLostError",
+    "JoinRefused": "evclock.remote.JoinRefusedError",
+    "ParticipantLost": "evclock.remote.ParticipantLostError",
+}
 
 
 def __getattr__(name: str) -> Any:
-    # The version has one source, the installed distribution's metadata (pyproject.toml);
-    # importlib.metadata is read on first use, not on `import evclock`.
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"{__name__}.{name}")
     if name == "__version__":
+        # One source of the version: the installed distribution's metadata (pyproject.toml),
+        # read on first use rather than on `import evclock`.
         from importlib.metadata import version
 
         return version("evclock")
-    # TimeBuffer needs numpy: it is imported on first use, so `import evclock` stays light.
-    if name in ("Interpolation", "TimeBuffer"):
-        from . import _buffer
-
-        return getattr(_buffer, name)
+    if name in _MOVED:
+        raise AttributeError(
+            f"evclock.{name} moved to evclock.{_MOVED[name]}.{name} in evclock 0.2.0: "
+            f"use `from evclock.{_MOVED[name]} import {name}` (see CHANGELOG.md)"
+        )
+    if name in _RENAMED:
+        raise AttributeError(
+            f"evclock.{name} was renamed {_RENAMED[name]} in evclock 0.2.0 (see CHANGELOG.md)"
+        )
     raise AttributeError(f"module 'evclock' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__, *_SUBPACKAGES})
 
 
 # Errors show their public name in tracebacks and reprs (evclock.InvalidArgumentError, not

@@ -1,5 +1,5 @@
 """``python -m evclock``: the ``evclock`` command."""
 
-from ._cli import main
+from evclock.tools._cli import main
 
 main()

@@ -9,7 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from ._jumps import TimeJump
+    from evclock.kernel._jumps import TimeJump
 
 
 class EvClockError(Exception):
@@ -63,7 +63,7 @@ class LagError(PacingError):
     """Strict pacing: the simulation fell behind the requested real-time factor by too much."""
 
 
-class ClockJumped(EvClockError):
+class ClockJumpedError(EvClockError):
     """Raised in a task sleeping on sim time when the clock jumps (reset, restore).
 
     ``jump`` describes the jump: its ``delta`` and the times before and after.
@@ -117,16 +117,16 @@ class RemoteClockError(EvClockError, RuntimeError):
     """Base class of the errors of sim time across processes (clock servers, participants)."""
 
 
-class ClockLost(RemoteClockError):
+class ClockLostError(RemoteClockError):
     """A joined process lost its clock: the clock server closed, died or stayed silent too long,
     or a followed ROS 2 ``/clock`` went silent."""
 
 
-class JoinRefused(RemoteClockError):
+class JoinRefusedError(RemoteClockError):
     """The clock server refused to let this process join (name taken, version, token)."""
 
 
-class ParticipantLost(RemoteClockError):
+class ParticipantLostError(RemoteClockError):
     """A participant the simulation depends on died, stopped answering or never joined.
 
     ``name`` is the participant's name.

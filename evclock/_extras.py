@@ -5,7 +5,7 @@ from __future__ import annotations
 import importlib
 from types import ModuleType
 
-from ._errors import MissingExtraError
+from evclock._errors import MissingExtraError
 
 #: The extra that installs each optional top-level module evclock or its scenarios import.
 EXTRA_OF_MODULE = {

@@ -7,11 +7,11 @@ Sensors, each publishing ROS-style messages (``header.stamp`` as ``sec``/``nanos
   delivered :attr:`LandmarkFusion.camera_latency` later (exposure, transfer, detection).
 
 The fusion controller pairs each detection with odometry through
-``evclock.ApproximateTimeSynchronizer`` (ROS's ApproximateTime policy) and places the landmark
+``evclock.data.ApproximateTimeSynchronizer`` (ROS's ApproximateTime policy) and places the landmark
 in the world three ways: with the pose of the paired odometry message, with the pose
-interpolated at the detection's own stamp from ``evclock.TimeBuffer`` s (linear for the
+interpolated at the detection's own stamp from ``evclock.data.TimeBuffer`` s (linear for the
 position, slerp for the orientation) - the right way - and with the latest pose when the
-detection arrives, the classic mistake of ignoring stamps. ``evclock.StampDiagnostics``
+detection arrives, the classic mistake of ignoring stamps. ``evclock.data.StampDiagnostics``
 watches the stamps' ages. The mission drives an arc past the landmark; it succeeds when the
 interpolated estimates are within :attr:`LandmarkFusion.required_accuracy` of the truth and
 beat both other ways.
@@ -61,7 +61,7 @@ class Detection:
 
 
 class _StampClockView:
-    """A sim-time :class:`evclock.StampClock` over a non-evclock :class:`ClockLike`."""
+    """A sim-time :class:`evclock.data.StampClock` over a non-evclock :class:`ClockLike`."""
 
     clock_type = evclock.SIM
 
@@ -72,7 +72,7 @@ class _StampClockView:
         return evclock.Time(0, self._clock.now().nanoseconds)
 
 
-def _stamp_clock(clock: ClockLike) -> evclock.StampClock:
+def _stamp_clock(clock: ClockLike) -> evclock.data.StampClock:
     """The clock itself when it is evclock's; a sim-time view of a stand-in clock otherwise."""
     return clock if isinstance(clock, evclock.Clock) else _StampClockView(clock)
 
@@ -128,7 +128,7 @@ class LandmarkFusion(Scenario):
         self.errors: dict[str, list[float]] = {"interpolated": [], "paired": [], "latest": []}
         """Landmark position errors (metres) per way of fusing, one per detection."""
         self.latest_pose: tuple[np.ndarray, np.ndarray] | None = None
-        self.stamps: evclock.StampDiagnostics | None = None
+        self.stamps: evclock.data.StampDiagnostics | None = None
         self._clock_type = evclock.SIM
         """The domain of the stamps: the clock's (STEADY when run on wall time)."""
 
@@ -146,18 +146,18 @@ class LandmarkFusion(Scenario):
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
         stamp_clock = _stamp_clock(clock)
         self._clock_type = stamp_clock.clock_type
-        self.stamps = evclock.StampDiagnostics(
+        self.stamps = evclock.data.StampDiagnostics(
             "fusion", clock=stamp_clock, stale_after=self.stale_after, max_queue=5
         )
-        sync = evclock.ApproximateTimeSynchronizer(
+        sync = evclock.data.ApproximateTimeSynchronizer(
             ["odometry", "camera"],
             queue_size=20,
             clock=stamp_clock,
             diagnostics=self.stamps,
             name="fusion sync",
         )
-        positions = evclock.TimeBuffer(200, name="odometry positions")
-        orientations = evclock.TimeBuffer(200, interpolation="slerp", name="odometry attitude")
+        positions = evclock.data.TimeBuffer(200, name="odometry positions")
+        orientations = evclock.data.TimeBuffer(200, interpolation="slerp", name="odometry attitude")
         in_flight: asyncio.Queue[tuple[int, Detection]] = asyncio.Queue()
         return {
             "odometry": self._odometry(clock, sync, positions, orientations),
@@ -169,9 +169,9 @@ class LandmarkFusion(Scenario):
     async def _odometry(
         self,
         clock: ClockLike,
-        sync: evclock.ApproximateTimeSynchronizer,
-        positions: evclock.TimeBuffer,
-        orientations: evclock.TimeBuffer,
+        sync: evclock.data.ApproximateTimeSynchronizer,
+        positions: evclock.data.TimeBuffer,
+        orientations: evclock.data.TimeBuffer,
     ) -> None:
         async for tick in clock.rate(self.odometry_hz, name="odometry"):
             position, orientation = self._pose()
@@ -197,7 +197,7 @@ class LandmarkFusion(Scenario):
         self,
         clock: ClockLike,
         in_flight: asyncio.Queue[tuple[int, Detection]],
-        sync: evclock.ApproximateTimeSynchronizer,
+        sync: evclock.data.ApproximateTimeSynchronizer,
     ) -> None:
         while True:
             due_ns, detection = await in_flight.get()
@@ -208,9 +208,9 @@ class LandmarkFusion(Scenario):
 
     async def _fuse(
         self,
-        sync: evclock.ApproximateTimeSynchronizer,
-        positions: evclock.TimeBuffer,
-        orientations: evclock.TimeBuffer,
+        sync: evclock.data.ApproximateTimeSynchronizer,
+        positions: evclock.data.TimeBuffer,
+        orientations: evclock.data.TimeBuffer,
     ) -> None:
         async for group in sync:
             odometry, detection = cast(tuple[Odometry, Detection], group)

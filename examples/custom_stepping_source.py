@@ -12,7 +12,8 @@ import asyncio
 from fractions import Fraction
 
 import evclock
-from evclock import ClockJumped, SteppingTimeSource
+from evclock import ClockJumpedError
+from evclock.sources import SteppingTimeSource
 
 
 class Spring(SteppingTimeSource[tuple[float, float]]):
@@ -61,7 +62,7 @@ async def main(spring: Spring) -> None:
     async def sleeper() -> None:
         try:
             await clock.sleep(5)
-        except ClockJumped as jumped:
+        except ClockJumpedError as jumped:
             print(f"a sleeper was woken by the jump: {jumped.jump.delta}")
 
     async with asyncio.TaskGroup() as group:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import pybullet as p
 
 import evclock
-from evclock import PyBulletTimeSource
+from evclock.sources import PyBulletTimeSource
 
 RATE_HZ = 20
 DURATION_S = 2.0

@@ -19,7 +19,7 @@ TICKS = 200
 
 
 async def main() -> None:
-    link = evclock.participant()  # the connection to the simulation
+    link = evclock.remote.participant()  # the connection to the simulation
     clock = evclock.clock()  # its sim time, exactly
     async for tick in clock.rate(100, name="control"):
         x = float(link.call("position"))

@@ -1,7 +1,7 @@
 """A simulation that serves its sim time; its controller runs in another process.
 
 The plant is a point whose velocity is the last command received (``x' = u``), integrated
-at 1 kHz on this process's sim time. It serves that time (``evclock.serve``), answers
+at 1 kHz on this process's sim time. It serves that time (``evclock.remote.serve``), answers
 ``position`` queries and applies ``command`` messages at the sim time the controller sent
 them, before the plant integrates any further (lockstep). Run::
 
@@ -25,14 +25,14 @@ async def main(address: str) -> None:
     clock = evclock.clock()
     state = {"x": 0.0, "u": 0.0}
 
-    def apply(message: evclock.Message) -> None:
+    def apply(message: evclock.remote.Message) -> None:
         state["u"] = float(message.data)
 
     async def plant() -> None:
         async for _tick in clock.rate(PLANT_HZ, name="plant"):
             state["x"] += state["u"] / PLANT_HZ
 
-    async with evclock.serve(address) as server:
+    async with evclock.remote.serve(address) as server:
         server.provide("position", lambda _request: repr(state["x"]).encode())
         server.subscribe("command", apply)
         print(f"serving sim time at {server.address}", flush=True)

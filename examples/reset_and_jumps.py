@@ -3,7 +3,7 @@
 Run it with ``python examples/reset_and_jumps.py``. A ball is dropped and a 10 Hz monitor
 watches it; a supervisor saves the state at 0.5 s, lets the run go on to 1.5 s, then restores
 the snapshot. Sim time jumps back to 0.5 s: the jump handlers run, a task in the middle of a
-``clock.sleep`` is woken with ``evclock.ClockJumped`` (it recomputes its deadline), and the
+``clock.sleep`` is woken with ``evclock.ClockJumpedError`` (it recomputes its deadline), and the
 rate loop re-anchors on the restored time. A ROS ``Rate.sleep`` would hang here.
 """
 
@@ -50,10 +50,10 @@ async def main() -> list[str]:
                 await clock.sleep(0.8)
                 log.append(f"slow task finished its sleep at {clock.now()}")
                 return
-            except evclock.ClockJumped as jumped:
+            except evclock.ClockJumpedError as jumped:
                 log.append(f"slow task woken by the jump ({jump_size(jumped)}); sleeping again")
 
-    def jump_size(exc: evclock.ClockJumped) -> str:
+    def jump_size(exc: evclock.ClockJumpedError) -> str:
         return f"delta {exc.jump.delta}"
 
     watcher = asyncio.create_task(monitor())
@@ -73,6 +73,6 @@ async def main() -> list[str]:
 
 
 if __name__ == "__main__":
-    source = evclock.PyBulletTimeSource.connect()
+    source = evclock.sources.PyBulletTimeSource.connect()
     for line in evclock.run(main(), source=source):
         print(line)

@@ -35,7 +35,7 @@ def main() -> None:
     parser.add_argument("--listen", action="append", help=f"default {DEFAULT_LISTEN[0]}")
     args = parser.parse_args()
 
-    source = evclock.PyBulletTimeSource.connect()
+    source = evclock.sources.PyBulletTimeSource.connect()
     box = build_world(source.client)
     with Ros2ClockPublisher(
         connect=DEFAULT_CONNECT if args.connect is None else args.connect,

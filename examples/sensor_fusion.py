@@ -42,15 +42,15 @@ def heading(yaw: float) -> list[float]:
 async def main() -> None:
     clock = evclock.clock()
     await clock.sleep(10.0)  # start at t = 10 s, like the camera at 10.00 s
-    diag = evclock.StampDiagnostics(
+    diag = evclock.data.StampDiagnostics(
         "perception",
         stale_after=0.1,
         on_warning=lambda w: print(f"  warning: {w.kind} stamp on {w.stream!r} at {w.at}"),
     )
-    sync = evclock.ApproximateTimeSynchronizer(
+    sync = evclock.data.ApproximateTimeSynchronizer(
         ["camera", "imu", "lidar"], queue_size=30, diagnostics=diag
     )
-    attitude = evclock.TimeBuffer(100, interpolation="slerp", name="imu attitude")
+    attitude = evclock.data.TimeBuffer(100, interpolation="slerp", name="imu attitude")
 
     async def imu() -> None:
         async for tick in clock.rate(100, name="imu"):
@@ -98,7 +98,7 @@ async def main() -> None:
     # A message stamped with the wall clock on sim time (time.time() instead of clock.now()).
     wall = Time(1_700_000_000.0, clock_type=evclock.SYSTEM)
     try:
-        sync.add("camera", evclock.Stamped(wall, "frame from a wall-clock driver"))
+        sync.add("camera", evclock.data.Stamped(wall, "frame from a wall-clock driver"))
     except evclock.ClockMismatchError as error:
         print(f"ClockMismatchError: {str(error).split(':')[0]}")
     # As a ROS stamp (no domain), it is read as sim time: far in the future, hence flagged.

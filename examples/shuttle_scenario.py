@@ -68,7 +68,7 @@ class Shuttle(Scenario):
 
     async def _log(self, clock: ClockLike) -> None:
         async for _tick in clock.rate(10.0, name="logger"):
-            evclock.record("/shuttle/error", {"error_m": self.error, "target_m": self.target})
+            evclock.tools.record("/shuttle/error", {"error_m": self.error, "target_m": self.target})
 
     async def _mission(self, clock: ClockLike) -> None:
         """Drive toward the target; done once within tolerance for ``hold_time`` seconds."""
@@ -109,7 +109,7 @@ class Shuttle(Scenario):
 
 if __name__ == "__main__":
     # The same run as `evclock run examples/shuttle_scenario.py --seed 3`, from Python.
-    report = evclock.run_scenario(Shuttle, seed=3)
+    report = evclock.tools.run_scenario(Shuttle, seed=3)
     print(f"{report.scenario} seed {report.seed}: {report.verdict}")
     print(
         f"target {report.summary['target_m']:.3f} m, error {report.summary['final_error_m']:.4f} m"

@@ -17,26 +17,26 @@ SHUTTLE = str(Path(__file__).resolve().parent / "shuttle_scenario.py")
 
 def main(out: Path) -> None:
     # 1. Sweep: 4 seeds x 2 gains, 2 processes at a time; rows come back in plan order.
-    result = evclock.sweep(
-        evclock.plan(SHUTTLE, seeds=range(4), params={"gain": [2.0, 4.0]}), workers=2
+    result = evclock.tools.sweep(
+        evclock.tools.plan(SHUTTLE, seeds=range(4), params={"gain": [2.0, 4.0]}), workers=2
     )
     summary = result.summary()
     print(f"sweep: {summary['done']} runs, success rate {summary['success_rate']:.0%}")
     arrival = summary["quantiles"]["arrival_s"]
     print(f"arrival_s median {arrival['p50']:.3f} s, max {arrival['p100']:.3f} s")
-    evclock.plot_sweep(result, out / "sweep.png")
+    evclock.tools.plot_sweep(result, out / "sweep.png")
 
     # 2. Record the same seed twice at different speeds, then with another parameter.
     for name, kwargs in (("a", {}), ("b", {"rtf": 10.0}), ("c", {"params": {"max_speed": 1.0}})):
-        evclock.run_scenario(SHUTTLE, seed=1, record=out / f"{name}.mcap", **kwargs)
-    a, b, c = (evclock.read_trace(out / f"{name}.mcap") for name in "abc")
-    print("a vs b:", evclock.first_divergence(a, b) or "identical")
-    divergence = evclock.first_divergence(a, c)
+        evclock.tools.run_scenario(SHUTTLE, seed=1, record=out / f"{name}.mcap", **kwargs)
+    a, b, c = (evclock.tools.read_trace(out / f"{name}.mcap") for name in "abc")
+    print("a vs b:", evclock.tools.first_divergence(a, b) or "identical")
+    divergence = evclock.tools.first_divergence(a, c)
     assert divergence is not None
     print("a vs c:", divergence.describe().split(":")[0])
 
     # 3. Plot run a: lateness per loop and achieved rtf over sim time.
-    evclock.plot_run(a, out / "run.png")
+    evclock.tools.plot_run(a, out / "run.png")
     print("plots:", ", ".join(sorted(p.name for p in out.glob("*.png"))))
 
 

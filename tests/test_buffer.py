@@ -14,13 +14,11 @@ from evclock import (
     STEADY,
     ClockMismatchError,
     Duration,
-    ExtrapolationError,
     InvalidArgumentError,
     InvalidTypeError,
     Time,
-    TimeBuffer,
-    TimeLookupError,
 )
+from evclock.data import ExtrapolationError, TimeBuffer, TimeLookupError
 
 
 def t(seconds: float) -> Time:

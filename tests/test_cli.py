@@ -15,7 +15,7 @@ from rich.console import Console
 from typer.testing import CliRunner
 
 import evclock
-from evclock._cli import app, parse_rtf, progress_bar, run_scenario
+from evclock.tools._cli import app, parse_rtf, progress_bar, run_scenario
 
 # Every scenario is a PyBullet world.
 pytestmark = pytest.mark.pybullet
@@ -204,8 +204,8 @@ def test_errors_show_their_public_name() -> None:
     )
     assert "\nevclock.InvalidArgumentError: " in proc.stderr
     assert "evclock._errors" not in proc.stderr
-    error = pickle.loads(pickle.dumps(evclock.ScenarioError("lost")))
-    assert type(error) is evclock.ScenarioError
+    error = pickle.loads(pickle.dumps(evclock.tools.ScenarioError("lost")))
+    assert type(error) is evclock.tools.ScenarioError
 
 
 def test_run_accepts_rtf_max() -> None:

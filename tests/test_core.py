@@ -8,9 +8,9 @@ from typing import Any
 
 import pytest
 
-from evclock import PacingError, VirtualTimeSource
-from evclock._core import DEADLOCK, DUE, HELD, MOVED, PACING, WAIT_IO, WAIT_SOURCE, SimCore
-from evclock.sources import Gate, TimeSource
+from evclock import PacingError
+from evclock.kernel._core import DEADLOCK, DUE, HELD, MOVED, PACING, WAIT_IO, WAIT_SOURCE, SimCore
+from evclock.sources import Gate, TimeSource, VirtualTimeSource
 
 
 class ScriptedHost:

@@ -10,15 +10,8 @@ import weakref
 import pytest
 
 import evclock
-from evclock import (
-    ClockMismatchError,
-    Duration,
-    InvalidArgumentError,
-    StampDiagnostics,
-    StampWarning,
-    Time,
-    diagnostics_report,
-)
+from evclock import ClockMismatchError, Duration, InvalidArgumentError, Time
+from evclock.data import StampDiagnostics, StampWarning, diagnostics_report
 
 
 def test_ages_stale_episodes_and_percentiles() -> None:
@@ -61,7 +54,8 @@ def test_a_wall_clock_ros_stamp_on_sim_time_is_flagged_as_future(caplog) -> None
         diag = StampDiagnostics()
         wall_msg_stamp = evclock.TimeMsg(sec=1_700_000_000, nanosec=0)  # time.time() on sim
         diag.observe(
-            "lidar", evclock.stamp_of(type("Scan", (), {"stamp": wall_msg_stamp})(), evclock.SIM)
+            "lidar",
+            evclock.data.stamp_of(type("Scan", (), {"stamp": wall_msg_stamp})(), evclock.SIM),
         )
         assert diag.streams()["lidar"].future == 1
 

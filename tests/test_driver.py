@@ -25,7 +25,7 @@ import uvloop
 
 import evclock
 from evclock import (
-    ClockJumped,
+    ClockJumpedError,
     ClockMismatchError,
     Duration,
     InvalidArgumentError,
@@ -40,7 +40,7 @@ from evclock import (
     Time,
     TimeJump,
 )
-from evclock._driver import SimDriverClock
+from evclock.hosts._driver import SimDriverClock
 
 T = TypeVar("T")
 ROOT = Path(__file__).resolve().parent.parent
@@ -669,14 +669,14 @@ def test_backward_jump_wakes_sleepers_with_clock_jumped(
         out: list[object] = []
         async with SimDriver(rtf=None) as sim:
             source = sim.source
-            assert isinstance(source, evclock.VirtualTimeSource)
+            assert isinstance(source, evclock.sources.VirtualTimeSource)
             sim.clock.on_jump(lambda j: out.append(("pre", j)), lambda j: out.append(("post", j)))
             ticks: list[evclock.Tick] = []
 
             async def sleeper() -> None:
                 try:
                     await sim.clock.sleep(10)
-                except ClockJumped as exc:
+                except ClockJumpedError as exc:
                     out.append(("sleeper", exc.jump, sim.now()))
 
             async def resetter() -> None:
@@ -768,7 +768,7 @@ def test_waits_started_while_stopping_are_cancelled_then_refused(
 
 def test_a_source_can_go_on_under_a_new_driver(run: Callable[[Awaitable[Any]], Any]) -> None:
     async def main() -> list[int]:
-        source = evclock.VirtualTimeSource()
+        source = evclock.sources.VirtualTimeSource()
         async with SimDriver(source, rtf=None) as sim:
             await sim.run_until(2.0)
         async with SimDriver(source, rtf=None) as again:
@@ -891,7 +891,7 @@ def test_start_needs_a_running_loop_that_is_not_a_sim_loop() -> None:
 
     with pytest.raises(SimDriverError) as err:
         evclock.run(on_sim_loop())
-    source = evclock.VirtualTimeSource()
+    source = evclock.sources.VirtualTimeSource()
     loop = evclock.SimEventLoop(source)
 
     async def source_in_use() -> None:
@@ -1035,7 +1035,7 @@ def test_control_and_run_until_errors(run: Callable[[Awaitable[Any]], Any]) -> N
 @pytest.mark.pybullet
 def test_pybullet_source_steps_in_lockstep(run: Callable[[Awaitable[Any]], Any]) -> None:
     async def main() -> list[object]:
-        source = evclock.PyBulletTimeSource.connect()
+        source = evclock.sources.PyBulletTimeSource.connect()
         try:
             out: list[object] = []
             async with SimDriver(source, rtf=None) as sim:
@@ -1072,7 +1072,7 @@ def test_pybullet_source_steps_in_lockstep(run: Callable[[Awaitable[Any]], Any])
 @pytest.mark.pybullet
 def test_pybullet_paused_steps_whole_physics_steps(run: Callable[[Awaitable[Any]], Any]) -> None:
     async def main() -> list[object]:
-        source = evclock.PyBulletTimeSource.connect()
+        source = evclock.sources.PyBulletTimeSource.connect()
         try:
             async with SimDriver(source, rtf=None, paused=True) as sim:
                 reached = asyncio.Event()
@@ -1100,7 +1100,7 @@ def test_pybullet_paused_steps_whole_physics_steps(run: Callable[[Awaitable[Any]
 def test_pybullet_free_runs_and_is_paced_step_by_step() -> None:
     async def main() -> list[object]:
         loop = fake_loop()
-        source = evclock.PyBulletTimeSource.connect()
+        source = evclock.sources.PyBulletTimeSource.connect()
         try:
             async with SimDriver(source, rtf=1.0, wall=loop.time):
                 stamps: list[tuple[int, float]] = []
@@ -1163,7 +1163,7 @@ def test_pybullet_wait_until_and_sleep_steps_under_the_driver(
     run: Callable[[Coroutine[Any, Any, T]], T],
 ) -> None:
     async def main() -> tuple[int, int, int]:
-        source = evclock.PyBulletTimeSource.connect()
+        source = evclock.sources.PyBulletTimeSource.connect()
         try:
             async with evclock.SimDriver(source, rtf=None):
                 reached = await source.wait_until(lambda: source.step_index >= 37, timeout=1)

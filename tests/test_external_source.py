@@ -15,8 +15,8 @@ import threading
 import pytest
 
 import evclock
-from evclock import EvClockError, SimDriver, SimEventLoop, TimeSource
-from evclock.sources import Gate
+from evclock import EvClockError, SimDriver, SimEventLoop
+from evclock.sources import Gate, TimeSource
 
 NS = 1_000_000_000
 PEER_TIMEOUT = 10.0  # wall seconds: every blocking wait of the peer thread is bounded

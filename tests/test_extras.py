@@ -90,7 +90,7 @@ def test_pybullet_source_without_pybullet() -> None:
         sys.modules["pybullet"] = None
         import evclock
         try:
-            evclock.PyBulletTimeSource.connect()
+            evclock.sources.PyBulletTimeSource.connect()
         except evclock.MissingExtraError as exc:
             print(exc)
         """
@@ -107,7 +107,7 @@ def test_evclock_run_without_pybullet_exits_2_naming_the_extra() -> None:
         """
         import sys
         sys.modules["pybullet"] = None
-        from evclock._cli import main
+        from evclock.tools._cli import main
         sys.argv = ["evclock", "run", "kuka", "--quiet"]
         main()
         """
@@ -157,7 +157,7 @@ def cli(args: list[str], *, hide: tuple[str, ...], cwd: Path) -> subprocess.Comp
         for name in {list(hide)!r}:
             sys.modules[name] = None
         sys.path.insert(0, {str(cwd)!r})
-        from evclock._cli import main
+        from evclock.tools._cli import main
         sys.argv = ["evclock", *{args!r}]
         main()
         """

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from evclock._cli import app, run_scenario
+from evclock.tools._cli import app, run_scenario
 
 ROOT = Path(__file__).resolve().parent.parent
 TIMEOUT = 60  # seconds; a guard against hangs, not a performance assertion

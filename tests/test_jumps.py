@@ -1,4 +1,4 @@
-"""Time jumps on virtual time: handlers, sleepers woken with ClockJumped, re-anchoring."""
+"""Time jumps on virtual time: handlers, sleepers woken with ClockJumpedError, re-anchoring."""
 
 from __future__ import annotations
 
@@ -10,11 +10,11 @@ import evclock
 from evclock import Duration, JumpThreshold, Time, TimeJump
 
 
-def source() -> evclock.VirtualTimeSource:
+def source() -> evclock.sources.VirtualTimeSource:
     loop = asyncio.get_running_loop()
     assert isinstance(loop, evclock.SimEventLoop)
     src = loop.source
-    assert isinstance(src, evclock.VirtualTimeSource)
+    assert isinstance(src, evclock.sources.VirtualTimeSource)
     return src
 
 
@@ -23,7 +23,7 @@ def test_backward_jump_wakes_100_sleepers_with_clock_jumped() -> None:
         try:
             await evclock.clock().sleep(10)
             results.append("slept")
-        except evclock.ClockJumped as exc:
+        except evclock.ClockJumpedError as exc:
             results.append(exc.jump)
 
     async def main() -> tuple[list[object], float]:
@@ -43,7 +43,7 @@ def test_backward_jump_wakes_100_sleepers_with_clock_jumped() -> None:
 
 def test_clock_jumped_message_says_what_to_do() -> None:
     jump = TimeJump(Time(seconds=5), Time(seconds=1))
-    assert str(evclock.ClockJumped(jump)) == (
+    assert str(evclock.ClockJumpedError(jump)) == (
         "sim time jumped from 5.000000000 s (sim) to 1.000000000 s (sim) while sleeping; "
         "the sleep was cancelled: re-compute the deadline from clock.now()"
     )

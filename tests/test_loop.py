@@ -132,7 +132,7 @@ def test_a_signal_that_arrives_as_outside_work_ends_is_handled_before_time_moves
     """The loop polls right before time moves, even when its last poll (a wait for outside
     work that timed out) ran no callback: the work can end, and a signal arrive, in between
     (as when a timer signal ends an ``alarm`` hold: the signal's byte is on the self-pipe)."""
-    from evclock._outside import EXACT
+    from evclock.outside._work import EXACT
 
     async def main() -> list[float]:
         loop = asyncio.get_running_loop()

@@ -24,17 +24,8 @@ pytest.importorskip("pybullet", reason="PyBullet is not installed: pip install '
 import pybullet as p
 
 import evclock
-from evclock import (
-    SIM,
-    DeadlockError,
-    LagError,
-    NotRunningError,
-    PacingError,
-    PyBulletTimeSource,
-    SimEventLoop,
-    Time,
-    VirtualTimeSource,
-)
+from evclock import SIM, DeadlockError, LagError, NotRunningError, PacingError, SimEventLoop, Time
+from evclock.sources import PyBulletTimeSource, VirtualTimeSource
 
 NS = 1_000_000_000
 DT = 1 / 240

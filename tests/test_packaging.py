@@ -1,9 +1,9 @@
 """The distribution: a wheel built from this source tree holds every module and data file of
 the package, so an installed evclock imports exactly what the checkout does.
 
-The regression this guards: the wheel once left out ``evclock/_remote/``, so a
-non-editable install could not ``import evclock`` and, through the ``pytest11`` entry point,
-broke every pytest run in that environment.
+The regression this guards: the wheel once left out ``evclock/_remote/`` (now
+``evclock/remote/``), so a non-editable install could not ``import evclock`` and, through the
+``pytest11`` entry point, broke every pytest run in that environment.
 
 CI builds the wheel once and passes it in ``EVCLOCK_WHEEL``, and runs the suite from a copy
 of the repository without the package folders, naming the source tree in
@@ -56,7 +56,7 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_the_source_tree_is_where_this_test_expects_it() -> None:
     # Guards the next test against comparing an empty listing with an empty wheel.
     assert "evclock/__init__.py" in source_files()
-    assert "evclock/_remote/__init__.py" in source_files()
+    assert "evclock/remote/__init__.py" in source_files()
     assert "evclock_sims/kuka.py" in source_files()
 
 
@@ -71,5 +71,5 @@ def test_the_wheel_declares_its_command_and_pytest_plugin(wheel: Path) -> None:
     with zipfile.ZipFile(wheel) as archive:
         (entry_points,) = (n for n in archive.namelist() if n.endswith("entry_points.txt"))
         text = archive.read(entry_points).decode()
-    assert "[console_scripts]\nevclock = evclock._cli:main" in text
-    assert "[pytest11]\nevclock = evclock.pytest_plugin" in text
+    assert "[console_scripts]\nevclock = evclock.tools._cli:main" in text
+    assert "[pytest11]\nevclock = evclock.testing.plugin" in text

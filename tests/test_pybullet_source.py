@@ -29,7 +29,7 @@ import pybullet as p
 import evclock
 from evclock import (
     SIM,
-    ClockJumped,
+    ClockJumpedError,
     ClockMismatchError,
     Duration,
     InvalidArgumentError,
@@ -37,13 +37,12 @@ from evclock import (
     JumpThreshold,
     NotRunningError,
     PhysicsError,
-    PyBulletTimeSource,
     SimEventLoop,
     SimTimeLimitError,
     Time,
     TimeJump,
 )
-from evclock.sources import exact_time_step
+from evclock.sources import PyBulletTimeSource, exact_time_step
 
 NS = 1_000_000_000
 STEP_NS = Fraction(NS, 240)  # PyBullet's default time step, exactly
@@ -869,7 +868,7 @@ def test_reset_wakes_100_sleepers_with_clock_jumped(client: int) -> None:
         clock = evclock.clock()
         try:
             await clock.sleep(2.0 + i / 100)
-        except ClockJumped as exc:
+        except ClockJumpedError as exc:
             outcomes.append((i, exc.jump, clock.now_ns()))
             return
         raise AssertionError("a sleeper was not woken by the jump")
@@ -1052,7 +1051,7 @@ def test_restore_wakes_sleepers_and_waiters(client: int) -> None:
         await source.sleep_steps(1)
         source.restore_state(state)
         for task in (sleeper, waiter):
-            with pytest.raises(ClockJumped) as info:
+            with pytest.raises(ClockJumpedError) as info:
                 await task
             assert info.value.jump.after == Time(0, clock_type=SIM)
         assert not source._slow

@@ -857,7 +857,7 @@ async def test_next_one_is_fine():
     result.stdout.fnmatch_lines(
         [
             ">           await asyncio.sleep(0)",
-            "E *evclock.pytest_plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
+            "E *evclock.testing.plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
             "the test was still running after 0.2 s of wall time (at sim time 3 s) and was "
             "cancelled. Its tasks were at:",
             f"E *Task-* (the test): test_busy() at *test_busy.py:"
@@ -922,7 +922,7 @@ async def test_swallows_once():
     result.stdout.fnmatch_lines(
         [
             ">           await asyncio.sleep(0)  # busy again",
-            "E *evclock.pytest_plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
+            "E *evclock.testing.plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
             "the test was still running after 0.2 s of wall time (at sim time 0 s) and was "
             "cancelled. Its tasks were at:",
         ]
@@ -982,7 +982,7 @@ async def test_blocks_then_waits(evclock_clock):
             "evclock: pytest-timeout is not installed: a test blocked in synchronous code "
             "fails only once it returns to its loop (pip install 'evclock[pytest]')",
             "*",
-            "E *evclock.pytest_plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
+            "E *evclock.testing.plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
             "the test was still running after 0.2 s of wall time (at sim time 0 s) and was "
             "cancelled. Its tasks were at:",
         ]
@@ -1054,7 +1054,7 @@ def test_sync_test_driving_the_loop(evclock_loop):
     result.stdout.fnmatch_lines(
         [
             "*_ ERROR at setup of test_with_busy_fixture _*",
-            "E *evclock.pytest_plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
+            "E *evclock.testing.plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
             "the test was still running after 0.2 s of wall time (in setup) and was cancelled. "
             "Its tasks were at:",
             f"E *Task-*: busy_fixture() at *test_slow_parts.py:{line_of(source, '# spins')} -> "
@@ -1064,7 +1064,7 @@ def test_sync_test_driving_the_loop(evclock_loop):
     result.stdout.fnmatch_lines(
         [
             "*_ test_sync_test_driving_the_loop _*",
-            "E *evclock.pytest_plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
+            "E *evclock.testing.plugin.WallTimeBudgetError: evclock: wall-time budget exceeded: "
             "the test was still running after 0.2 s of wall time and was cancelled. Its tasks "
             "were at:",
             "E *Task-*: spin() at *test_slow_parts.py:* -> sleep() at *",

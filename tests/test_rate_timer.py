@@ -33,7 +33,7 @@ def test_rate_ticks_on_an_exact_grid_and_reports_expected_and_actual() -> None:
     ]
 
 
-def _overrun(policy: evclock._rate.Policy) -> list[tuple[int, int, int, int]]:
+def _overrun(policy: evclock.kernel._rate.Policy) -> list[tuple[int, int, int, int]]:
     """10 ms period; the body of tick 1 takes 25 ms."""
 
     async def main() -> list[tuple[int, int, int, int]]:

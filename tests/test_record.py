@@ -13,8 +13,8 @@ from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 import evclock
-from evclock._cli import app
-from evclock._plot import PALETTE, RTF_COLOR
+from evclock.tools._cli import app
+from evclock.tools._plot import PALETTE, RTF_COLOR
 
 ROOT = Path(__file__).resolve().parent.parent
 SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
@@ -22,9 +22,9 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, evclock.RunReport]:
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, evclock.tools.RunReport]:
     path = tmp_path_factory.mktemp("rec") / "shuttle.mcap"
-    report = evclock.run_scenario(SHUTTLE, seed=1, record=path)
+    report = evclock.tools.run_scenario(SHUTTLE, seed=1, record=path)
     return path, report
 
 
@@ -53,9 +53,11 @@ def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object
 
 
 @pytest.mark.pybullet
-def test_every_tick_is_recorded_at_its_sim_time(recorded: tuple[Path, evclock.RunReport]) -> None:
+def test_every_tick_is_recorded_at_its_sim_time(
+    recorded: tuple[Path, evclock.tools.RunReport],
+) -> None:
     path, report = recorded
-    trace = evclock.read_trace(path)
+    trace = evclock.tools.read_trace(path)
     stats = {loop.name: loop.stats for loop in report.loops}
     for name, hz in (("control", 20.0), ("logger", 10.0)):
         ticks = trace.topic(f"/evclock/loop/{name}")
@@ -80,23 +82,23 @@ def test_every_tick_is_recorded_at_its_sim_time(recorded: tuple[Path, evclock.Ru
 
 
 @pytest.mark.pybullet
-def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.RunReport]) -> None:
+def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.tools.RunReport]) -> None:
     path, report = recorded
-    plain = evclock.run_scenario(SHUTTLE, seed=1)
+    plain = evclock.tools.run_scenario(SHUTTLE, seed=1)
     assert plain.final_state == report.final_state
     assert plain.sim_time_s == report.sim_time_s
-    last_state = evclock.read_trace(path).topic("/evclock/state")[-1]
+    last_state = evclock.tools.read_trace(path).topic("/evclock/state")[-1]
     assert last_state.data["state"] == report.final_state
     assert last_state.time_ns / 1e9 == report.sim_time_s
 
 
 @pytest.mark.pybullet
 def test_trace_diff_identical_runs_whatever_the_rtf(
-    recorded: tuple[Path, evclock.RunReport], tmp_path: Path
+    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
     path, _ = recorded
     paced = tmp_path / "paced.mcap"
-    evclock.run_scenario(SHUTTLE, seed=1, rtf=20.0, record=paced)
+    evclock.tools.run_scenario(SHUTTLE, seed=1, rtf=20.0, record=paced)
     result = runner.invoke(app, ["trace", "diff", str(path), str(paced)])
     assert result.exit_code == 0, result.output
     assert "identical: " in result.output
@@ -105,13 +107,13 @@ def test_trace_diff_identical_runs_whatever_the_rtf(
 
 @pytest.mark.pybullet
 def test_trace_diff_names_the_first_divergence(
-    recorded: tuple[Path, evclock.RunReport], tmp_path: Path
+    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
     path, _ = recorded
     other = tmp_path / "slower.mcap"
-    evclock.run_scenario(SHUTTLE, seed=1, params={"max_speed": 1.0}, record=other)
-    a, b = evclock.read_trace(path), evclock.read_trace(other)
-    divergence = evclock.first_divergence(a, b)
+    evclock.tools.run_scenario(SHUTTLE, seed=1, params={"max_speed": 1.0}, record=other)
+    a, b = evclock.tools.read_trace(path), evclock.tools.read_trace(other)
+    divergence = evclock.tools.first_divergence(a, b)
     assert divergence is not None
     # Same seed, same world, a lower speed limit from the first control tick: the first
     # difference is the cart's state in the sample at 0.05 s (ticks agree: same schedule).
@@ -122,18 +124,18 @@ def test_trace_diff_names_the_first_divergence(
     result = runner.invoke(app, ["trace", "diff", str(path), str(other)])
     assert result.exit_code == 1
     assert " ".join(result.output.split()) == divergence.describe()
-    assert evclock.first_divergence(a, a) is None
+    assert evclock.tools.first_divergence(a, a) is None
 
 
 @pytest.mark.pybullet
 def test_trace_diff_reports_a_shorter_run(
-    recorded: tuple[Path, evclock.RunReport], tmp_path: Path
+    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
     path, _ = recorded
     short = tmp_path / "short.mcap"
-    evclock.run_scenario(SHUTTLE, seed=1, until=0.5, record=short)
-    full = evclock.read_trace(path)
-    divergence = evclock.first_divergence(evclock.read_trace(short), full)
+    evclock.tools.run_scenario(SHUTTLE, seed=1, until=0.5, record=short)
+    full = evclock.tools.read_trace(path)
+    divergence = evclock.tools.first_divergence(evclock.tools.read_trace(short), full)
     assert divergence is not None
     # Cut at 0.5 s before the control tick due then ran: the short run's last state sample
     # stands where the full run has that tick.
@@ -141,8 +143,8 @@ def test_trace_diff_reports_a_shorter_run(
     assert divergence.detail == (
         "a has /evclock/state at 0.500000 s, b has /evclock/loop/control at 0.500000 s"
     )
-    prefix = evclock.Trace(short, {}, full.messages[:40])
-    divergence = evclock.first_divergence(full, prefix)
+    prefix = evclock.tools.Trace(short, {}, full.messages[:40])
+    divergence = evclock.tools.first_divergence(full, prefix)
     assert divergence is not None
     assert divergence.detail == "b ends here; the other goes on"
 
@@ -150,8 +152,8 @@ def test_trace_diff_reports_a_shorter_run(
 def test_reading_something_else_fails_clearly(tmp_path: Path) -> None:
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")
-    with pytest.raises(evclock.TraceError) as info:
-        evclock.read_trace(junk)
+    with pytest.raises(evclock.tools.TraceError) as info:
+        evclock.tools.read_trace(junk)
     assert f"cannot read '{junk}' as an MCAP recording" in str(info.value)
     result = runner.invoke(app, ["trace", "diff", str(junk), str(tmp_path / "none.mcap")])
     assert result.exit_code == 2
@@ -160,12 +162,12 @@ def test_reading_something_else_fails_clearly(tmp_path: Path) -> None:
 
 def test_user_channels_are_checked() -> None:
     with pytest.raises(evclock.InvalidArgumentError) as info:
-        evclock.record("/evclock/state", {})
+        evclock.tools.record("/evclock/state", {})
     assert "topic '/evclock/state' is reserved for evclock's own channels" in str(info.value)
     with pytest.raises(evclock.InvalidTypeError) as type_info:
-        evclock.record("/mine", [1, 2])  # type: ignore[arg-type]
+        evclock.tools.record("/mine", [1, 2])  # type: ignore[arg-type]
     assert "record() needs a mapping (a JSON object) as message, got list" in str(type_info.value)
-    evclock.record("/mine", {"x": 1})  # no recording: nothing to write, no error
+    evclock.tools.record("/mine", {"x": 1})  # no recording: nothing to write, no error
 
 
 def test_recording_without_mcap_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -182,7 +184,7 @@ def _pixels_of(image: np.ndarray, color: str) -> int:
 
 @pytest.mark.pybullet
 def test_plot_draws_each_loop_and_the_rtf(
-    recorded: tuple[Path, evclock.RunReport], tmp_path: Path
+    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
     path, _ = recorded
     png = tmp_path / "run.png"
@@ -199,7 +201,7 @@ def test_plot_draws_each_loop_and_the_rtf(
 
 def test_plot_refuses_a_recording_without_loops(tmp_path: Path) -> None:
     empty = tmp_path / "empty.mcap"
-    from evclock._record import Recorder
+    from evclock.tools._record import Recorder
 
     Recorder(empty, {}).close()
     result = runner.invoke(app, ["plot", str(empty), "-o", str(tmp_path / "x.png")])

@@ -1,6 +1,6 @@
 """Sim time across processes: serving, joining, lockstep, follow and the data channel.
 
-The simulation runs in the test process (``evclock.run`` + ``evclock.serve``); participants
+The simulation runs in the test process (``evclock.run`` + ``evclock.remote.serve``); participants
 are real interpreter processes joining over a real Unix socket (or loopback TCP).
 """
 
@@ -22,15 +22,15 @@ import pytest
 from _remote_helpers import finish, spawn
 
 import evclock
-from evclock._remote import _protocol as proto
-from evclock._remote._address import parse_address
+from evclock.remote import _protocol as proto
+from evclock.remote._address import parse_address
 
 TICKER = """
 import json, sys, evclock
 
 async def main():
     clock = evclock.clock()
-    link = evclock.participant()
+    link = evclock.remote.participant()
     seen = [clock.now().nanoseconds]
     for i in range(int(sys.argv[1])):
         await clock.sleep(0.001)
@@ -55,9 +55,9 @@ def test_lockstep_participant_runs_on_server_time_and_data_is_handled_at_its_tim
 
     async def main() -> int:
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
 
-            def on_tick(message: evclock.Message) -> None:
+            def on_tick(message: evclock.remote.Message) -> None:
                 now = clock.now().nanoseconds
                 handled.append((message.time.nanoseconds, now, message.data.decode()))
 
@@ -93,9 +93,9 @@ def test_participants_due_at_the_same_time_are_granted_together_and_one_may_leav
 
     async def main() -> int:
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
 
-            def on_tick(message: evclock.Message) -> None:
+            def on_tick(message: evclock.remote.Message) -> None:
                 assert clock.now() == message.time  # handled at its sim time
                 handled.append((message.time.nanoseconds, message.sender, message.data.decode()))
 
@@ -137,7 +137,7 @@ def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -
         for _ in range(3):
             await clock.sleep(0.010)
             time.sleep(0.05)  # 50 ms of wall-time work at this sim time
-            evclock.participant().publish("done", b"")
+            evclock.remote.participant().publish("done", b"")
     evclock.run(main())
     """
     proc = spawn(tmp_path, slow, EVCLOCK_CLOCK=f"{url}?name=slow")
@@ -145,7 +145,7 @@ def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -
 
     async def main() -> None:
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             server.subscribe(
                 "done", lambda m: seen.append((m.time.nanoseconds, clock.now().nanoseconds))
             )
@@ -178,7 +178,7 @@ def test_a_lockstep_round_costs_the_server_one_zero_timeout_poll(tmp_path: Path)
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("ticker")
             select = loop._selector.select  # type: ignore[attr-defined]
 
@@ -209,7 +209,7 @@ def test_a_lockstep_round_costs_the_server_one_zero_timeout_poll(tmp_path: Path)
 
 @pytest.mark.pybullet
 def test_follower_sees_every_physics_step_and_never_holds_the_simulation(tmp_path: Path) -> None:
-    from evclock import PyBulletTimeSource
+    from evclock.sources import PyBulletTimeSource
 
     url = address(tmp_path)
     follower = """
@@ -227,7 +227,7 @@ def test_follower_sees_every_physics_step_and_never_holds_the_simulation(tmp_pat
     source = PyBulletTimeSource.connect()
 
     async def main() -> None:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("watcher")
             await server.wait_until_left()
 
@@ -249,7 +249,7 @@ def test_a_participant_started_before_the_server_waits_for_it(tmp_path: Path) ->
     # The participant is already retrying when the server comes up.
 
     async def main() -> None:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("early")
             await server.wait_until_left()
 
@@ -264,7 +264,7 @@ def test_late_join_starts_at_the_current_sim_time(tmp_path: Path) -> None:
 
     async def main() -> None:
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await clock.sleep(0.5)
             proc = spawn(tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{url}?name=late")
             await server.wait_for_participants("late")
@@ -282,7 +282,7 @@ def test_participants_exchange_data_at_the_same_sim_time(tmp_path: Path) -> None
     import json, evclock
     async def main():
         clock = evclock.clock()
-        link = evclock.participant()
+        link = evclock.remote.participant()
         got = []
         import asyncio
         done = asyncio.Event()
@@ -303,12 +303,12 @@ def test_participants_exchange_data_at_the_same_sim_time(tmp_path: Path) -> None
         clock = evclock.clock()
         for i in range(3):
             await clock.sleep(0.25)
-            evclock.participant().publish("ping", f"#{i}".encode())
+            evclock.remote.participant().publish("ping", f"#{i}".encode())
     evclock.run(main())
     """
 
     async def main() -> tuple[subprocess.Popen[str], subprocess.Popen[str]]:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             ready = asyncio.Event()
             server.subscribe("ready", lambda _m: ready.set())
             first = spawn(tmp_path, listener, EVCLOCK_CLOCK=f"{url}?name=listener")
@@ -335,12 +335,12 @@ def test_calls_are_answered_and_their_errors_reported(tmp_path: Path) -> None:
     caller = """
     import evclock
     async def main():
-        link = evclock.participant()
+        link = evclock.remote.participant()
         print(link.call("echo", b"abc").decode())
         for service in ("broken", "missing"):
             try:
                 link.call(service)
-            except evclock.RemoteCallError as exc:
+            except evclock.remote.RemoteCallError as exc:
                 print(exc)
     evclock.run(main())
     """
@@ -350,7 +350,7 @@ def test_calls_are_answered_and_their_errors_reported(tmp_path: Path) -> None:
         raise ValueError("no such joint")
 
     async def main() -> None:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             server.provide("echo", lambda data: data[::-1])
             server.provide("broken", broken)
             await server.wait_for_participants("caller")
@@ -370,7 +370,7 @@ def test_unix_socket_is_owner_only_and_removed_afterwards(tmp_path: Path) -> Non
     path = tmp_path / "private.sock"
 
     async def main() -> int:
-        async with evclock.serve(f"unix://{path}"):
+        async with evclock.remote.serve(f"unix://{path}"):
             return stat.S_IMODE(os.stat(path).st_mode)
 
     assert evclock.run(main()) == 0o600
@@ -382,7 +382,7 @@ def test_an_existing_socket_file_is_not_replaced(tmp_path: Path) -> None:
     path.write_text("")
 
     async def main() -> None:
-        async with evclock.serve(f"unix://{path}"):
+        async with evclock.remote.serve(f"unix://{path}"):
             pass
 
     with pytest.raises(evclock.InvalidArgumentError, match="already exists; another clock server"):
@@ -393,7 +393,7 @@ def test_an_existing_socket_file_is_not_replaced(tmp_path: Path) -> None:
 def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
     async def main() -> list[str]:
         loop = asyncio.get_running_loop()
-        async with evclock.serve("tcp://127.0.0.1:0", token="s3cret") as server:
+        async with evclock.remote.serve("tcp://127.0.0.1:0", token="s3cret") as server:
             assert server.address.startswith("tcp://127.0.0.1:")
             wrong = spawn(tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token=nope")
             # Served while we wait for the refused process to end (a wait in a worker thread).
@@ -409,21 +409,21 @@ def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
         return [refused.strip().splitlines()[-1], out]
 
     wrong, right = evclock.run(main())
-    assert "JoinRefused" in wrong
+    assert "JoinRefusedError" in wrong
     assert "wrong or missing token" in wrong
     assert json.loads(right) == [0, 1_000_000]
 
 
 def test_tcp_refuses_a_non_loopback_address_without_a_token() -> None:
     async def main() -> None:
-        async with evclock.serve("tcp://0.0.0.0:0"):
+        async with evclock.remote.serve("tcp://0.0.0.0:0"):
             pass
 
     with pytest.raises(evclock.InvalidArgumentError, match="needs a shared token"):
         evclock.run(main())
 
     async def with_token() -> None:
-        async with evclock.serve("tcp://0.0.0.0:0", token="t"):
+        async with evclock.remote.serve("tcp://0.0.0.0:0", token="t"):
             pass
 
     with pytest.raises(evclock.InvalidArgumentError, match="not a loopback address"):
@@ -432,7 +432,7 @@ def test_tcp_refuses_a_non_loopback_address_without_a_token() -> None:
 
 def test_serve_needs_a_sim_loop() -> None:
     async def main() -> None:
-        async with evclock.serve("unix:///tmp/never.sock"):
+        async with evclock.remote.serve("unix:///tmp/never.sock"):
             pass
 
     with pytest.raises(evclock.InvalidTypeError, match="serves the sim time of a SimEventLoop"):
@@ -469,7 +469,7 @@ def test_clock_conflicts_are_errors_not_guesses(monkeypatch: pytest.MonkeyPatch)
         raise AssertionError("must not run")
 
     with pytest.raises(evclock.InvalidArgumentError, match="which owns sim time; drop source="):
-        evclock.run(main(), clock="unix:///tmp/x.sock", source=evclock.VirtualTimeSource())
+        evclock.run(main(), clock="unix:///tmp/x.sock", source=evclock.sources.VirtualTimeSource())
     with pytest.raises(evclock.InvalidArgumentError, match=r"pacing .* belongs to that simulation"):
         evclock.run(main(), clock="unix:///tmp/x.sock", rtf=1.0)
     with pytest.raises(evclock.InvalidArgumentError, match="use_sim_time resolved to False"):
@@ -478,7 +478,7 @@ def test_clock_conflicts_are_errors_not_guesses(monkeypatch: pytest.MonkeyPatch)
     with pytest.raises(
         evclock.InvalidArgumentError, match=re.escape("EVCLOCK_CLOCK='unix:///tmp/x.sock'")
     ):
-        evclock.run(main(), source=evclock.VirtualTimeSource())
+        evclock.run(main(), source=evclock.sources.VirtualTimeSource())
     with pytest.raises(evclock.InvalidTypeError, match="clock must be a URL string"):
         evclock.run(main(), clock=3)  # type: ignore[arg-type]
 
@@ -488,20 +488,20 @@ def test_no_server_is_a_clock_lost_error_after_the_timeout(tmp_path: Path) -> No
         raise AssertionError("must not run")
 
     with pytest.raises(
-        evclock.ClockLost, match=r"no clock server at unix://.* after waiting 0\.5 s"
+        evclock.ClockLostError, match=r"no clock server at unix://.* after waiting 0\.5 s"
     ):
         evclock.run(main(), clock=f"unix://{tmp_path / 'none.sock'}?timeout=0.5")
 
 
 def test_a_registered_clock_scheme_provides_the_source(monkeypatch: pytest.MonkeyPatch) -> None:
-    from evclock import _config
+    from evclock.hosts import _config
 
     monkeypatch.setattr(_config, "_CLOCK_SCHEMES", dict(_config._CLOCK_SCHEMES))
     made: list[str] = []
 
-    def factory(url: str) -> evclock.TimeSource:
+    def factory(url: str) -> evclock.sources.TimeSource:
         made.append(url)
-        return evclock.VirtualTimeSource(7_000_000_000)
+        return evclock.sources.VirtualTimeSource(7_000_000_000)
 
     evclock.register_clock_scheme("fake", factory)
 
@@ -518,7 +518,7 @@ def test_a_registered_clock_scheme_provides_the_source(monkeypatch: pytest.Monke
 
 def test_participant_outside_a_joined_program_is_an_error() -> None:
     async def main() -> None:
-        evclock.participant()
+        evclock.remote.participant()
 
     with pytest.raises(evclock.NoSimulationError, match="did not join a clock server"):
         evclock.run(main())
@@ -540,7 +540,7 @@ def test_frames_split_across_reads_are_reassembled() -> None:
 
 
 def test_a_bad_frame_length_is_a_protocol_error() -> None:
-    with pytest.raises(evclock.ProtocolError, match="bad frame length"):
+    with pytest.raises(evclock.remote.ProtocolError, match="bad frame length"):
         proto.Reader().feed(b"GET / HTTP/1.1\r\n\r\n")
 
 
@@ -563,7 +563,7 @@ def test_a_long_wait_on_a_live_server_is_not_a_lost_clock(tmp_path: Path) -> Non
     proc = spawn(tmp_path, TICKER.replace("0.001", "3.0"), "1", EVCLOCK_CLOCK=f"{url}?timeout=1")
 
     async def main() -> None:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants(count=1)
             await server.wait_until_left()
 
@@ -578,7 +578,7 @@ def test_whole_frames_one_or_several_per_read() -> None:
     assert reader.feed(proto.grant(7)) == [(proto.GRANT, (7).to_bytes(8, "little"))]
     two = reader.feed(proto.done(7, 9) + proto.bye())
     assert [kind for kind, _ in two] == [proto.DONE, proto.BYE]
-    with pytest.raises(evclock.ProtocolError, match="bad frame length 0"):
+    with pytest.raises(evclock.remote.ProtocolError, match="bad frame length 0"):
         reader.feed(b"\x00\x00\x00\x00D")
 
 
@@ -610,8 +610,8 @@ def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Pa
     async def main():
         clock = evclock.clock()
         got = asyncio.Queue()
-        evclock.participant().subscribe("cmd", got.put_nowait)
-        evclock.participant().publish("subscribed", b"")
+        evclock.remote.participant().subscribe("cmd", got.put_nowait)
+        evclock.remote.participant().publish("subscribed", b"")
         message = await got.get()  # no deadline: only data wakes this participant
         print(json.dumps([message.sender, message.time.nanoseconds, clock.now().nanoseconds]))
     evclock.run(main())
@@ -620,7 +620,7 @@ def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Pa
 
     async def main() -> None:
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             subscribed = asyncio.Event()
             server.subscribe("subscribed", lambda _m: subscribed.set())
             await server.wait_for_participants("waiter")
@@ -637,7 +637,10 @@ def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Pa
 
 def test_a_busy_tcp_port_is_a_clear_error() -> None:
     async def main() -> None:
-        async with evclock.serve("tcp://127.0.0.1:0") as first, evclock.serve(first.address):
+        async with (
+            evclock.remote.serve("tcp://127.0.0.1:0") as first,
+            evclock.remote.serve(first.address),
+        ):
             pass
 
     with pytest.raises(evclock.InvalidArgumentError, match=r"cannot serve on tcp://127\.0\.0\.1:"):
@@ -651,7 +654,7 @@ def test_loop_factory_joins_a_clock_server(tmp_path: Path) -> None:
         """
         import sys, evclock
         async def main():
-            async with evclock.serve(sys.argv[1]) as server:
+            async with evclock.remote.serve(sys.argv[1]) as server:
                 await server.wait_for_participants("runner")
                 await server.wait_until_left()
         evclock.run(main())
@@ -668,7 +671,7 @@ def test_loop_factory_joins_a_clock_server(tmp_path: Path) -> None:
         assert runner.run(main()) == 250_000_000
     assert finish(server)[0] == 0
     with pytest.raises(evclock.InvalidArgumentError, match="takes a source or a clock URL"):
-        evclock.loop_factory(clock=url, source=evclock.VirtualTimeSource)
+        evclock.loop_factory(clock=url, source=evclock.sources.VirtualTimeSource)
     with pytest.raises(evclock.InvalidArgumentError, match="pacing"):
         evclock.loop_factory(clock=url, rtf=2.0)
 
@@ -683,7 +686,7 @@ def test_a_sim_driver_refuses_a_remote_clock_and_leaves_the_server_cleanly(
         import sys, evclock
         async def main():
             clock = evclock.clock()
-            async with evclock.serve(sys.argv[1]) as server:
+            async with evclock.remote.serve(sys.argv[1]) as server:
                 await server.wait_for_participants("driver")
                 await server.wait_until_left()  # the refused one leaves cleanly
                 print("left at", clock.now().nanoseconds, flush=True)
@@ -693,7 +696,7 @@ def test_a_sim_driver_refuses_a_remote_clock_and_leaves_the_server_cleanly(
         """,
         url,
     )
-    source = evclock.RemoteClockSource(f"{url}?name=driver")
+    source = evclock.remote.RemoteClockSource(f"{url}?name=driver")
     driver = evclock.SimDriver(source=source)
 
     async def main() -> None:
@@ -722,7 +725,7 @@ import json, evclock
 
 async def main():
     clock = evclock.clock()
-    link = evclock.participant()
+    link = evclock.remote.participant()
     events = []
     link.subscribe(
         "news",
@@ -740,7 +743,7 @@ async def main():
             await clock.sleep(0.001)
             events.append(["tick", clock.now().nanoseconds])
             ticks += 1
-        except evclock.ClockJumped as exc:
+        except evclock.ClockJumpedError as exc:
             events.append(["woken", clock.now().nanoseconds, exc.jump.after.nanoseconds])
     print(json.dumps(events))
 
@@ -763,7 +766,7 @@ def test_a_time_jump_reaches_lockstep_participants_in_order_with_data(
             post=lambda j: seen.append((j.before.nanoseconds, j.after.nanoseconds)),
             threshold=evclock.JumpThreshold(min_forward=evclock.Duration(nanoseconds=1)),
         )
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("p")
             await clock.sleep(0.0035)
             server.publish("news", b"before")
@@ -783,7 +786,7 @@ def test_a_time_jump_reaches_lockstep_participants_in_order_with_data(
         ["msg", "before", 3_500_000, 3_500_000],
         ["tick", 4 * ms],
         ["jump", 4_500_000, to_ns],  # the simulation's jump: its clock first reaches 4.5 ms
-        ["woken", to_ns, to_ns],  # its pending sleep (due at 5 ms) raised ClockJumped
+        ["woken", to_ns, to_ns],  # its pending sleep (due at 5 ms) raised ClockJumpedError
         ["tick", to_ns + 1 * ms],
         ["tick", to_ns + 2 * ms],  # six ticks in all: it leaves, the server ends
     ]
@@ -804,7 +807,7 @@ async def main():
             await clock.sleep(0.25)  # 60 physics steps at 240 Hz
             events.append(["tick", clock.now().nanoseconds])
             ticks += 1
-        except evclock.ClockJumped:
+        except evclock.ClockJumpedError:
             events.append(["woken", clock.now().nanoseconds])
     print(json.dumps(events))
 evclock.run(main())
@@ -818,9 +821,9 @@ def test_a_restored_pybullet_snapshot_reaches_every_participant_as_one_jump(
     # The simulation steps PyBullet, snapshots at 0.6 s and restores the snapshot at 1.1 s:
     # its clock jumps back 1.1 s -> 0.6 s. A lockstep participant and a follower see that
     # same jump; the lockstep one, whose 0.25 s sleeps are on physics steps, keeps exactly
-    # the timeline an in-process task would (its sleep due at 1.25 s raises ClockJumped
+    # the timeline an in-process task would (its sleep due at 1.25 s raises ClockJumpedError
     # at 0.6 s, then it ticks every 0.25 s from there).
-    from evclock import PyBulletTimeSource
+    from evclock.sources import PyBulletTimeSource
 
     url = address(tmp_path)
     lockstep = spawn(tmp_path, SNAPSHOT_PARTICIPANT, EVCLOCK_CLOCK=f"{url}?name=lock")
@@ -831,7 +834,7 @@ def test_a_restored_pybullet_snapshot_reaches_every_participant_as_one_jump(
     async def main() -> None:
         clock = evclock.clock()
         clock.on_jump(post=lambda j: jumps.append((j.before.nanoseconds, j.after.nanoseconds)))
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("lock", "fol")
             await clock.sleep(0.6)
             snapshot = source.save_state()
@@ -880,7 +883,7 @@ def test_a_jump_while_a_participant_works_supersedes_its_round(tmp_path: Path) -
     async def main() -> None:
         loop = asyncio.get_running_loop()
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("p")
             await clock.sleep(0.0035)
             server.publish("news", b"before")
@@ -916,12 +919,12 @@ def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
         import json, evclock
         async def main():
             clock = evclock.clock()
-            link = evclock.participant()
+            link = evclock.remote.participant()
             await clock.sleep(0.5)
             link.publish("ready", b"")
             try:
                 await clock.sleep(3600)
-            except evclock.ClockJumped as exc:
+            except evclock.ClockJumpedError as exc:
                 print(json.dumps([clock.now().nanoseconds, exc.jump.before.nanoseconds,
                                   exc.jump.after.nanoseconds]))
         evclock.run(main())
@@ -932,7 +935,7 @@ def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
     async def main() -> None:
         loop = asyncio.get_running_loop()
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             ready = asyncio.Event()
             server.subscribe("ready", lambda message: ready.set())
             await server.wait_for_participants("f")
@@ -1009,7 +1012,7 @@ def test_frames_that_come_with_the_welcome_are_not_lost(tmp_path: Path) -> None:
     async def main() -> None:
         try:
             await evclock.clock().sleep(3600)
-        except evclock.ClockJumped as exc:
+        except evclock.ClockJumpedError as exc:
             seen[:] = [exc.jump.before.nanoseconds, exc.jump.after.nanoseconds]
             seen.append(evclock.clock().now().nanoseconds)
 
@@ -1029,7 +1032,7 @@ def test_a_lockstep_participant_does_its_granted_round_before_the_jump_after_it(
     # The simulation grants 1 ms, and a task of its own jumps back to 0 at 1 ms: GRANT and
     # JUMP arrive in one read, before the participant applied the grant. It works at 1 ms
     # first (its tick there), then jumps from 1 ms, as the simulation did; the round at
-    # 1 ms is superseded (no DONE for it), its sleep due at 2 ms raises ClockJumped.
+    # 1 ms is superseded (no DONE for it), its sleep due at 2 ms raises ClockJumpedError.
     ms = 1_000_000
 
     def script(s: ScriptedServer) -> None:
@@ -1051,7 +1054,7 @@ def test_a_lockstep_participant_does_its_granted_round_before_the_jump_after_it(
         events.append(["tick", clock.now().nanoseconds])
         try:
             await clock.sleep(0.001)
-        except evclock.ClockJumped:
+        except evclock.ClockJumpedError:
             events.append(["woken", clock.now().nanoseconds])
 
     try:
@@ -1074,7 +1077,7 @@ def test_a_follower_behind_the_simulation_reaches_the_jump_time_then_jumps_back(
     # (followers never hold it), which may still be at 0 when it reads the JUMP (the more
     # so when it is busy for `lag` wall seconds first): its clock first moves to 0.5 s, its
     # deadline at 0.3 s firing on the way, and then jumps back, so its long sleep raises
-    # ClockJumped, as in-process. Same outcome whatever the timing.
+    # ClockJumpedError, as in-process. Same outcome whatever the timing.
     url = address(tmp_path)
     proc = spawn(
         tmp_path,
@@ -1092,7 +1095,7 @@ def test_a_follower_behind_the_simulation_reaches_the_jump_time_then_jumps_back(
             seen.append(["woken", clock.now().nanoseconds])
             try:
                 await clock.sleep(3600)
-            except evclock.ClockJumped as exc:
+            except evclock.ClockJumpedError as exc:
                 seen.append(["jumped", clock.now().nanoseconds, exc.jump.before.nanoseconds,
                              exc.jump.after.nanoseconds])
             print(json.dumps(seen))
@@ -1104,7 +1107,7 @@ def test_a_follower_behind_the_simulation_reaches_the_jump_time_then_jumps_back(
     async def main() -> None:
         loop = asyncio.get_running_loop()
         clock = evclock.clock()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("f")
             await clock.sleep(0.5)
             loop.source.set_time(100_000_000)

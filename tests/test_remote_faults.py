@@ -21,8 +21,8 @@ import pytest
 from _remote_helpers import finish, read_line, spawn
 
 import evclock
-from evclock._remote import _protocol as proto
-from evclock._remote import _server
+from evclock.remote import _protocol as proto
+from evclock.remote import _server
 
 #: Joins, says "working" at 10 ms of sim time and then blocks inside that step.
 STUCK = """
@@ -71,11 +71,11 @@ def test_a_killed_participant_aborts_the_simulation_naming_it(tmp_path: Path) ->
     on_output(victim, lambda _line: victim.send_signal(signal.SIGKILL))
 
     async def main() -> None:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("victim")
             await server.wait_until_left()
 
-    with pytest.raises(evclock.ParticipantLost) as caught:
+    with pytest.raises(evclock.remote.ParticipantLostError) as caught:
         evclock.run(main())
     assert caught.value.name == "victim"
     assert str(caught.value).startswith(
@@ -91,13 +91,13 @@ def test_a_stopped_participant_hits_the_step_timeout(tmp_path: Path) -> None:
     on_output(victim, lambda _line: victim.send_signal(signal.SIGSTOP))
 
     async def main() -> None:
-        async with evclock.serve(url, step_timeout=0.5) as server:
+        async with evclock.remote.serve(url, step_timeout=0.5) as server:
             await server.wait_for_participants("frozen")
             await server.wait_until_left()
 
     try:
         with pytest.raises(
-            evclock.ParticipantLost,
+            evclock.remote.ParticipantLostError,
             match=r"participant 'frozen' \(lockstep\) did not finish its step within "
             r"step_timeout=0\.5 s of wall time \(stopped or stuck\) at 0\.010000 s",
         ):
@@ -113,7 +113,7 @@ def test_drop_policy_continues_without_a_silent_participant(tmp_path: Path) -> N
 
     async def main() -> tuple[tuple[tuple[str, str], ...], int, subprocess.Popen[str]]:
         # The limit applies to the healthy participant's steps too: room for a loaded machine.
-        async with evclock.serve(url, on_fault="drop", step_timeout=2) as server:
+        async with evclock.remote.serve(url, on_fault="drop", step_timeout=2) as server:
             await server.wait_for_participants("sleeper")
             steady = spawn(tmp_path, STEADY, "30", EVCLOCK_CLOCK=f"{url}?name=steady")
             await server.wait_for_participants("steady")
@@ -167,7 +167,7 @@ def test_pause_policy_holds_time_until_a_replacement_joins(tmp_path: Path) -> No
     on_output(victim, kill_and_replace)
 
     async def main() -> int:
-        async with evclock.serve(url, on_fault="pause") as server:
+        async with evclock.remote.serve(url, on_fault="pause") as server:
             await server.wait_for_participants("worker")
             await server.wait_until_left()
             return evclock.clock().now().nanoseconds
@@ -200,7 +200,7 @@ evclock.run(main())
 SERVER_FOREVER = """
 import sys, evclock
 async def main():
-    async with evclock.serve(sys.argv[1]) as server:
+    async with evclock.remote.serve(sys.argv[1]) as server:
         await server.wait_for_participants("p")
         await server.wait_until_left()
 evclock.run(main())
@@ -233,7 +233,7 @@ def test_the_server_dying_or_stopping_is_clock_lost_in_the_participant(
         reap(server)
     assert code == 1
     last = err.strip().splitlines()[-1]
-    assert last.startswith("evclock.ClockLost: the clock server at unix://")
+    assert last.startswith("evclock.ClockLostError: the clock server at unix://")
     assert re_search(message, last)
 
 
@@ -248,7 +248,7 @@ def test_duplicate_names_are_refused_and_the_server_keeps_running(tmp_path: Path
 
     async def main() -> tuple[str, str]:
         loop = asyncio.get_running_loop()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             first = spawn(tmp_path, STEADY, "5", EVCLOCK_CLOCK=f"{url}?name=twin")
             await server.wait_for_participants("twin")
             second = spawn(tmp_path, STEADY, "5", EVCLOCK_CLOCK=f"{url}?name=twin")
@@ -261,7 +261,7 @@ def test_duplicate_names_are_refused_and_the_server_keeps_running(tmp_path: Path
 
     refused, out = evclock.run(main())
     assert refused == (
-        f"evclock.JoinRefused: the clock server at {url} refused 'twin': a participant "
+        f"evclock.remote.JoinRefusedError: the clock server at {url} refused 'twin': a participant "
         "named 'twin' is already joined; give this process another name (?name=... in the "
         "clock address)"
     )
@@ -307,7 +307,7 @@ def test_bad_clients_are_refused_and_the_server_keeps_serving(
 
     async def main() -> bytes:
         loop = asyncio.get_running_loop()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             answer = await loop.run_in_executor(None, raw_exchange, server.address, payload)
             good = spawn(tmp_path, STEADY, "2", EVCLOCK_CLOCK=f"{url}?name=good")
             await server.wait_for_participants("good")
@@ -330,7 +330,7 @@ def test_a_connection_that_never_greets_is_closed(
 
     async def main() -> bytes:
         loop = asyncio.get_running_loop()
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             return await loop.run_in_executor(None, raw_exchange, server.address, b"")
 
     assert proto.Reader().feed(evclock.run(main())) == [(proto.REFUSE, b"no HELLO within 0.3 s")]
@@ -338,10 +338,10 @@ def test_a_connection_that_never_greets_is_closed(
 
 def test_waiting_for_participants_that_never_come_is_bounded(tmp_path: Path) -> None:
     async def main() -> None:
-        async with evclock.serve(url_in(tmp_path)) as server:
+        async with evclock.remote.serve(url_in(tmp_path)) as server:
             await server.wait_for_participants("ghost", timeout=0.3)
 
-    with pytest.raises(evclock.ParticipantLost, match="'ghost' did not join unix://"):
+    with pytest.raises(evclock.remote.ParticipantLostError, match="'ghost' did not join unix://"):
         evclock.run(main())
 
 
@@ -350,7 +350,7 @@ def test_a_participant_leaving_cleanly_is_forgotten(tmp_path: Path) -> None:
     proc = spawn(tmp_path, STEADY, "4", EVCLOCK_CLOCK=f"{url}?name=brief")
 
     async def main() -> tuple[tuple[str, ...], tuple[str, ...], int]:
-        async with evclock.serve(url) as server:
+        async with evclock.remote.serve(url) as server:
             await server.wait_for_participants("brief")
             during = server.participants
             await server.wait_until_left()
@@ -362,7 +362,7 @@ def test_a_participant_leaving_cleanly_is_forgotten(tmp_path: Path) -> None:
 
 def test_bad_server_options_are_refused(tmp_path: Path) -> None:
     async def main(**options: object) -> None:
-        async with evclock.serve(url_in(tmp_path), **options):  # type: ignore[arg-type]
+        async with evclock.remote.serve(url_in(tmp_path), **options):  # type: ignore[arg-type]
             pass
 
     with pytest.raises(evclock.InvalidArgumentError, match="on_fault must be one of abort, drop"):

@@ -16,9 +16,9 @@ from pathlib import Path
 import pytest
 from _remote_helpers import ROOT, WAIT
 
-from evclock._cli import run_scenario
+from evclock.tools._cli import run_scenario
 
-CLI = [sys.executable, "-c", "from evclock._cli import main; main()"]
+CLI = [sys.executable, "-c", "from evclock.tools._cli import main; main()"]
 
 
 def evclock_cli(*args: str) -> subprocess.Popen[str]:

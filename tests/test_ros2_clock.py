@@ -22,17 +22,22 @@ from zenoh.ext import Int64, z_deserialize
 
 import evclock
 from evclock import (
-    ClockJumped,
-    ClockLost,
+    ClockJumpedError,
+    ClockLostError,
     ClockMismatchError,
     InvalidArgumentError,
     InvalidTypeError,
     LoopClosedError,
-    Ros2MessageError,
     Time,
 )
-from evclock._threads import mark_internal
-from evclock.ros2 import CLOCK_TYPE_HASH, Ros2ClockPublisher, Ros2ClockSource, encode_clock
+from evclock.outside._threads import mark_internal
+from evclock.ros2 import (
+    CLOCK_TYPE_HASH,
+    Ros2ClockPublisher,
+    Ros2ClockSource,
+    Ros2MessageError,
+    encode_clock,
+)
 
 WAIT = 10.0  # wall seconds: a guard against hangs, never a performance assertion
 KEY = f"0/clock/rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}"
@@ -186,7 +191,7 @@ def test_publisher_sends_rmw_zenoh_samples_and_tokens(endpoint: str) -> None:
 
 @pytest.mark.pybullet
 def test_publisher_follows_pybullet_steps_with_decimation(endpoint: str) -> None:
-    source = evclock.PyBulletTimeSource.connect()
+    source = evclock.sources.PyBulletTimeSource.connect()
     with Ros2ClockPublisher(connect=[], listen=[endpoint]) as pub:
         peer = raw_session(connect=[endpoint], listen=[])
         try:
@@ -222,9 +227,9 @@ def test_publisher_rejects_bad_input(endpoint: str) -> None:
     with pytest.raises(InvalidTypeError, match="publish\\(\\) takes a sim Time or int"):
         pub.publish(True)
     with pytest.raises(InvalidTypeError, match="attach\\(\\) takes a PyBulletTimeSource"):
-        pub.attach(evclock.VirtualTimeSource())  # type: ignore[arg-type]
+        pub.attach(evclock.sources.VirtualTimeSource())  # type: ignore[arg-type]
     with pytest.raises(InvalidArgumentError, match="decimation must be >= 1"):
-        pub.attach(evclock.PyBulletTimeSource.connect(), decimation=0)
+        pub.attach(evclock.sources.PyBulletTimeSource.connect(), decimation=0)
     pub.close()
     with pytest.raises(LoopClosedError, match="this Ros2ClockPublisher is closed"):
         pub.publish(0)
@@ -363,7 +368,7 @@ def test_backward_clock_is_a_jump(endpoint: str, outside: Any) -> None:
         sleeper = asyncio.ensure_future(clk.sleep(5))
         await asyncio.sleep(0)
         feed(3 * S)  # the simulator was reset
-        with pytest.raises(ClockJumped):
+        with pytest.raises(ClockJumpedError):
             await sleeper
         assert clk.now() == Time(3)
         return jumps
@@ -378,13 +383,17 @@ def test_silent_publisher_is_reported(endpoint: str, outside: Any) -> None:
     async def main() -> None:
         await evclock.clock().sleep(1)
 
-    with pytest.raises(ClockLost, match=r"no /clock message for \d+\.\d s of wall time") as info:
+    with pytest.raises(
+        ClockLostError, match=r"no /clock message for \d+\.\d s of wall time"
+    ) as info:
         evclock.run(main(), source=source)
     assert "raise silence_timeout (now 0.3 s) or pass None" in str(info.value)
 
 
 def test_no_clock_at_startup_waits_until_the_startup_timeout(endpoint: str) -> None:
-    with pytest.raises(ClockLost, match=r"no /clock message arrived within startup_timeout=0.3 s"):
+    with pytest.raises(
+        ClockLostError, match=r"no /clock message arrived within startup_timeout=0.3 s"
+    ):
         Ros2ClockSource(connect=[endpoint], listen=[], startup_timeout=0.3)
 
 
@@ -486,7 +495,7 @@ def test_sim_driver_refuses_an_external_source(endpoint: str, outside: Any) -> N
 def test_waiting_for_the_first_clock_is_reported_while_it_lasts(
     endpoint: str, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with caplog.at_level("WARNING", logger="evclock.ros2"), pytest.raises(ClockLost):
+    with caplog.at_level("WARNING", logger="evclock.ros2"), pytest.raises(ClockLostError):
         Ros2ClockSource(connect=[endpoint], listen=[], startup_timeout=0.5, silence_timeout=0.2)
     warnings = [r.getMessage() for r in caplog.records if r.name == "evclock.ros2"]
     assert warnings[:2] == [

@@ -18,8 +18,8 @@ import pytest
 import zenoh
 from typer.testing import CliRunner
 
-from evclock._cli import app
 from evclock.ros2 import CLOCK_TYPE_HASH, decode_clock
+from evclock.tools._cli import app
 
 ROOT = Path(__file__).resolve().parent.parent
 EXAMPLES = ROOT / "examples"

@@ -17,12 +17,13 @@ from zenoh import ZBytes
 from zenoh.ext import Int64, z_deserialize, z_serialize
 
 import evclock
-from evclock import InvalidArgumentError, InvalidTypeError, MissingExtraError, Ros2MessageError
+from evclock import InvalidArgumentError, InvalidTypeError, MissingExtraError
 from evclock.ros2 import (
     CLOCK_QOS,
     CLOCK_TYPE_HASH,
     HUMBLE_TYPE_HASH,
     WIRE_FORMATS,
+    Ros2MessageError,
     clock_key_expr,
     decode_clock,
     encode_attachment,
@@ -264,7 +265,7 @@ def test_clock_url_and_wall_time_conflict() -> None:
 def test_clock_url_and_source_conflict(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("EVCLOCK_CLOCK", "ros2:///clock")
     with pytest.raises(InvalidArgumentError, match="EVCLOCK_CLOCK='ros2:///clock'"):
-        evclock.run(_noop(), source=evclock.VirtualTimeSource())
+        evclock.run(_noop(), source=evclock.sources.VirtualTimeSource())
 
 
 def test_missing_extra_names_the_extra() -> None:

@@ -11,8 +11,8 @@ import pytest
 from typer.testing import CliRunner
 
 import evclock
-from evclock._cli import app
-from evclock._scenarios import configure, load_scenario, parameters, parse_param_values
+from evclock.tools._cli import app
+from evclock.tools._scenarios import configure, load_scenario, parameters, parse_param_values
 
 ROOT = Path(__file__).resolve().parent.parent
 SHUTTLE = ROOT / "examples" / "shuttle_scenario.py"
@@ -27,7 +27,7 @@ def test_registered_names_load_the_bundled_classes() -> None:
     assert load_scenario("kuka") is KukaReach
     assert load_scenario("husky") is HuskyPatrol
     assert load_scenario("cartpole") is CartPole
-    names = [s.name for s in evclock._scenarios.registered_scenarios()]
+    names = [s.name for s in evclock.tools._scenarios.registered_scenarios()]
     assert {"kuka", "husky", "cartpole"} <= set(names)
 
 
@@ -47,8 +47,8 @@ def test_module_reference_and_file_load_the_same_kind_of_class() -> None:
     [
         ("nope", evclock.InvalidArgumentError, "unknown scenario 'nope'; registered names: "),
         ("no/such/file.py", evclock.InvalidArgumentError, "scenario file 'no/such/file.py' does"),
-        ("no_such_module_x:Thing", evclock.ScenarioError, "cannot import 'no_such_module_x'"),
-        ("evclock_sims.cartpole:Nope", evclock.ScenarioError, "has no attribute 'Nope'"),
+        ("no_such_module_x:Thing", evclock.tools.ScenarioError, "cannot import 'no_such_module_x'"),
+        ("evclock_sims.cartpole:Nope", evclock.tools.ScenarioError, "has no attribute 'Nope'"),
         ("evclock_sims.cartpole:SLIDER", evclock.InvalidTypeError, "is not a class but a int"),
         ("evclock:Time", evclock.InvalidTypeError, "is not a scenario: it lacks run, success"),
         (
@@ -124,8 +124,8 @@ def test_configure_rejects_a_value_of_the_wrong_type() -> None:
 
 @pytest.mark.pybullet
 def test_run_a_scenario_file_with_a_param_changes_the_run() -> None:
-    base = evclock.run_scenario(str(SHUTTLE), seed=2)
-    slow = evclock.run_scenario(str(SHUTTLE), seed=2, params={"gain": 1.0})
+    base = evclock.tools.run_scenario(str(SHUTTLE), seed=2)
+    slow = evclock.tools.run_scenario(str(SHUTTLE), seed=2, params={"gain": 1.0})
     assert base.success
     assert slow.success
     assert slow.params == {"gain": 1.0}

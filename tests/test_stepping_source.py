@@ -1,6 +1,6 @@
 """A second, non-PyBullet stepping source: a plain Python fixed-step integrator.
 
-It proves that another engine plugs into :class:`evclock.SteppingTimeSource` with a few
+It proves that another engine plugs into :class:`evclock.sources.SteppingTimeSource` with a few
 methods (step, set the time step, snapshots), and gets the exact step clock, step hooks,
 predicate waits and snapshots-as-jumps, on both hosts (SimEventLoop and SimDriver).
 """
@@ -13,7 +13,8 @@ from fractions import Fraction
 import pytest
 
 import evclock
-from evclock import ClockJumped, PhysicsError, SimDriver, SteppingTimeSource, Time
+from evclock import ClockJumpedError, PhysicsError, SimDriver, Time
+from evclock.sources import SteppingTimeSource
 
 
 class Oscillator(SteppingTimeSource[tuple[float, float]]):
@@ -111,7 +112,7 @@ def test_snapshots_are_time_jumps() -> None:
         async def sleeper() -> str:
             try:
                 await clock.sleep(10)
-            except ClockJumped as jumped:
+            except ClockJumpedError as jumped:
                 return str(jumped.jump.delta)
             return "not woken"
 

@@ -23,10 +23,10 @@ from rich.console import Console
 from typer.testing import CliRunner
 
 import evclock
-from evclock._cli import app
-from evclock._cli_sweep import SweepProgress
-from evclock._plot import HISTOGRAM_COLOR
-from evclock._sweep import SweepRow, parse_seeds, quantiles
+from evclock.tools._cli import app
+from evclock.tools._cli_sweep import SweepProgress
+from evclock.tools._plot import HISTOGRAM_COLOR
+from evclock.tools._sweep import SweepRow, parse_seeds, quantiles
 
 ROOT = Path(__file__).resolve().parent.parent
 SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
@@ -85,7 +85,7 @@ def test_parse_seeds() -> None:
 
 
 def test_plan_is_every_combination_times_every_seed() -> None:
-    specs = evclock.plan("kuka", [0, 1], {"tolerance": [0.01, 0.02], "dwell": [0.3]})
+    specs = evclock.tools.plan("kuka", [0, 1], {"tolerance": [0.01, 0.02], "dwell": [0.3]})
     assert [(s.params["tolerance"], s.seed) for s in specs] == [
         (0.01, 0),
         (0.01, 1),
@@ -154,7 +154,7 @@ def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
     assert rows[5]["report"]["summary"] == expected["summary"]
     assert rows[5]["report"]["sim_time_s"] == expected["sim_time_s"]
     for row in rows[:2]:
-        report = evclock.run_scenario(SHUTTLE, seed=row["seed"], params={"gain": 3.0})
+        report = evclock.tools.run_scenario(SHUTTLE, seed=row["seed"], params={"gain": 3.0})
         assert row["report"]["final_state"] == report.final_state
     # The histogram PNG: bars drawn for every numeric field.
     image = imread(png)
@@ -251,7 +251,7 @@ def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     assert [rows[s]["status"] for s in range(3)] == ["success", "error", "error"]
     assert str(rows[1]["error"]).startswith("ray task failed: ")
     assert rows[2]["error"] == "RuntimeError: boom at seed 2"
-    report = evclock.run_scenario(fragile, seed=0)
+    report = evclock.tools.run_scenario(fragile, seed=0)
     assert rows[0]["report"]["final_state"] == report.final_state  # type: ignore[index]
 
 
@@ -284,7 +284,7 @@ def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_pat
 def test_sweep_progress_counts_done_failed_and_aggregate_rtf() -> None:
     console = Console(file=io.StringIO(), width=120)
     display = SweepProgress(console, total=3, quiet=False)
-    spec = evclock.RunSpec("shuttle", 0, {})
+    spec = evclock.tools.RunSpec("shuttle", 0, {})
     with display.progress:
         display.row_done(SweepRow(spec, "success", report={"sim_time_s": 2.0}))
         display.row_done(SweepRow(spec, "error", error="boom"))

@@ -14,17 +14,19 @@ import evclock
 from evclock import (
     SIM,
     STEADY,
-    ApproximateTimeSynchronizer,
     ClockMismatchError,
     Duration,
     InvalidArgumentError,
     InvalidTypeError,
-    StampDiagnostics,
-    Stamped,
     Time,
     TimeMsg,
-    TimeSynchronizer,
     WallClock,
+)
+from evclock.data import (
+    ApproximateTimeSynchronizer,
+    StampDiagnostics,
+    Stamped,
+    TimeSynchronizer,
     stamp_of,
 )
 
@@ -78,7 +80,7 @@ def test_stamp_of_explains_what_it_cannot_read() -> None:
         InvalidTypeError,
         match=re.escape(
             "cannot read a time stamp from a str: give it a 'stamp' (evclock.Time), a ROS "
-            "'header.stamp' (sec/nanosec), wrap it in evclock.Stamped(stamp, value), or pass "
+            "'header.stamp' (sec/nanosec), wrap it in evclock.data.Stamped(stamp, value), or pass "
             "key=lambda msg: <its Time>"
         ),
     ):
@@ -177,7 +179,7 @@ def test_slop_mode_behaves_like_ros_python() -> None:
 
 
 def test_consumer_falling_behind_drops_oldest_groups_and_warns() -> None:
-    warnings: list[evclock.StampWarning] = []
+    warnings: list[evclock.data.StampWarning] = []
 
     async def main() -> None:
         diag = StampDiagnostics("fusion", max_queue=3, on_warning=warnings.append)

@@ -13,7 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from evclock._sync_policies import ApproximatePolicy, ExactPolicy, Group, SlopPolicy
+from evclock.data._policies import ApproximatePolicy, ExactPolicy, Group, SlopPolicy
 
 FLUSH = 10_000
 """A stamp after every generated one: a final set at it forces every earlier set out."""

@@ -1,4 +1,4 @@
-"""Tests of evclock._time: Duration, Time, clock domains, messages and conversions."""
+"""Tests of evclock.time._time: Duration, Time, clock domains, messages and conversions."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from evclock._errors import (
     InvalidArgumentError,
     InvalidTypeError,
 )
-from evclock._time import (
+from evclock.time._time import (
     SIM,
     STEADY,
     SYSTEM,
@@ -65,7 +65,7 @@ def test_clock_types() -> None:
 
 
 def test_public_names() -> None:
-    import evclock._time as mod
+    import evclock.time._time as mod
 
     assert set(mod.__all__) == {
         "ClockType",

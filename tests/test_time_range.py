@@ -18,7 +18,8 @@ import numpy as np
 import pytest
 
 import evclock
-from evclock import Duration, InvalidArgumentError, SimEventLoop, Time, VirtualTimeSource
+from evclock import Duration, InvalidArgumentError, SimEventLoop, Time
+from evclock.sources import VirtualTimeSource
 
 MAX_NS = 2**63 - 1
 RANGE = f"outside sim time's range [0, {MAX_NS}] ns (64-bit nanoseconds, about 292 years)"
@@ -173,7 +174,7 @@ def test_achieved_rtf_is_known_after_a_single_sleep() -> None:
 def test_a_rejected_loop_prints_nothing(arguments: str) -> None:
     code = (
         "import gc, evclock\n"
-        "from evclock import SimEventLoop, VirtualTimeSource\n"
+        "from evclock import SimEventLoop\nfrom evclock.sources import VirtualTimeSource\n"
         "try:\n"
         f"    SimEventLoop({arguments})\n"
         "except (evclock.EvClockError, TypeError) as exc:\n"

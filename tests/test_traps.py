@@ -14,7 +14,7 @@ import anyio.to_thread
 import pytest
 
 import evclock
-from evclock import _threads
+from evclock.outside import _threads
 
 # --------------------------------------------------------------------------- FIFO ties
 

@@ -20,8 +20,8 @@ from typing import Any, TypeVar
 import pytest
 
 import evclock
-from evclock import _precise
-from evclock._time import Duration
+from evclock.kernel import _precise
+from evclock.time._time import Duration
 
 _T = TypeVar("_T")
 

@@ -16,11 +16,12 @@ format that evclock writes and reads itself. Install the extra first::
 Importing this module does not import Zenoh; opening a publisher or a source does.
 """
 
-from ._publisher import Ros2ClockPublisher
-from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN
-from ._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
-from ._url import source_from_url
-from ._wire import (
+from evclock._errors import Ros2MessageError
+from evclock.ros2._publisher import Ros2ClockPublisher
+from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN
+from evclock.ros2._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
+from evclock.ros2._url import source_from_url
+from evclock.ros2._wire import (
     CLOCK_DDS_TYPE,
     CLOCK_QOS,
     CLOCK_TYPE,
@@ -41,6 +42,7 @@ from ._wire import (
 )
 
 __all__ = [
+    "Ros2MessageError",
     "CLOCK_DDS_TYPE",
     "CLOCK_QOS",
     "CLOCK_TYPE",
@@ -65,3 +67,5 @@ __all__ = [
     "resolve_domain_id",
     "source_from_url",
 ]
+
+Ros2MessageError.__module__ = __name__

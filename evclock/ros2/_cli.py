@@ -13,11 +13,13 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from .._errors import InvalidArgumentError
-from ._publisher import Ros2ClockPublisher
-from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints
-from ._wire import DEFAULT_WIRE_FORMAT as DEFAULT_WIRE_FORMAT  # the --ros2-wire-format default
-from ._wire import (
+from evclock._errors import InvalidArgumentError
+from evclock.ros2._publisher import Ros2ClockPublisher
+from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints
+from evclock.ros2._wire import (
+    DEFAULT_WIRE_FORMAT as DEFAULT_WIRE_FORMAT,  # the --ros2-wire-format default
+)
+from evclock.ros2._wire import (
     ENV_ROS_DOMAIN_ID,
     WIRE_FORMATS,
     clock_key_expr,
@@ -26,7 +28,7 @@ from ._wire import (
 )
 
 if TYPE_CHECKING:
-    from ..sources import PyBulletTimeSource
+    from evclock.sources import PyBulletTimeSource
 
 Ros2ClockFlag = Annotated[
     bool,

@@ -7,10 +7,20 @@ from collections.abc import Callable, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
-from .._errors import ClockMismatchError, InvalidArgumentError, InvalidTypeError, LoopClosedError
-from .._time import SIM, Time
-from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints, open_session, require
-from ._wire import (
+from evclock._errors import (
+    ClockMismatchError,
+    InvalidArgumentError,
+    InvalidTypeError,
+    LoopClosedError,
+)
+from evclock.ros2._session import (
+    DEFAULT_CONNECT,
+    DEFAULT_LISTEN,
+    check_endpoints,
+    open_session,
+    require,
+)
+from evclock.ros2._wire import (
     DEFAULT_WIRE_FORMAT,
     WireFormat,
     check_node_name,
@@ -23,10 +33,11 @@ from ._wire import (
     resolve_domain_id,
     resolve_topic,
 )
-from ._wire import wire_format as lookup_wire_format
+from evclock.ros2._wire import wire_format as lookup_wire_format
+from evclock.time._time import SIM, Time
 
 if TYPE_CHECKING:
-    from ..sources import PyBulletTimeSource, StepHook
+    from evclock.sources import PyBulletTimeSource, StepHook
 
 _NODE_ID = 0
 _PUBLISHER_ID = 1
@@ -178,7 +189,7 @@ class Ros2ClockPublisher:
         Returns the step hook (``remove()`` stops publishing). Per-step hooks make the
         source step one step at a time, which is what publishing every step needs.
         """
-        from ..sources import PyBulletTimeSource
+        from evclock.sources import PyBulletTimeSource
 
         if not isinstance(source, PyBulletTimeSource):
             raise InvalidTypeError(
@@ -200,7 +211,7 @@ class Ros2ClockPublisher:
 
     async def run(self, hz: float) -> None:
         """Publish the running loop's sim time at ``hz`` of sim time, until cancelled."""
-        from .._clock import sim_clock
+        from evclock.hosts._current import sim_clock
 
         async for tick in sim_clock().rate(hz, name=f"ros2 {self._topic} publisher"):
             self.publish(tick.actual)

@@ -11,7 +11,7 @@ import json
 from collections.abc import Sequence
 from typing import Any, Final
 
-from .._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
+from evclock._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
 
 #: Where rmw_zenoh's router listens by default (``ros2 run rmw_zenoh_cpp rmw_zenohd``), on
 #: loopback: a ROS 2 graph on this machine is reached through it.

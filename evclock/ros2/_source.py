@@ -11,7 +11,7 @@ reads the inbox and moves time toward the newest ``/clock`` value, never past th
 deadline, or returns the time unchanged - "waiting for the outside" - and the loop waits for
 I/O. A backward step of ``/clock`` below the loop's time (a simulator reset) is a jump with
 evclock's jump policy. Liveness is the source's job: after ``silence_timeout`` wall seconds
-without a sample it raises :class:`~evclock.ClockLost` from ``advance()``.
+without a sample it raises :class:`~evclock.ClockLostError` from ``advance()``.
 """
 
 from __future__ import annotations
@@ -24,12 +24,16 @@ import time
 from collections.abc import Sequence
 from typing import Any, Final
 
-from .._errors import ClockLost, InvalidArgumentError, InvalidTypeError, Ros2MessageError
-from .._threads import mark_internal
-from .._time import SIM, Time
-from ..sources import Gate, TimeSource
-from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints, open_session, require
-from ._wire import (
+from evclock._errors import ClockLostError, InvalidArgumentError, InvalidTypeError, Ros2MessageError
+from evclock.outside._threads import mark_internal
+from evclock.ros2._session import (
+    DEFAULT_CONNECT,
+    DEFAULT_LISTEN,
+    check_endpoints,
+    open_session,
+    require,
+)
+from evclock.ros2._wire import (
     check_node_name,
     check_type_hash,
     clock_subscription_key_expr,
@@ -39,10 +43,12 @@ from ._wire import (
     resolve_domain_id,
     resolve_topic,
 )
+from evclock.sources import Gate, TimeSource
+from evclock.time._time import SIM, Time
 
 logger = logging.getLogger("evclock.ros2")
 
-#: Default wall seconds without a ``/clock`` sample before the source gives up (ClockLost).
+#: Default wall seconds without a ``/clock`` sample before the source gives up (ClockLostError).
 DEFAULT_SILENCE_TIMEOUT: Final = 10.0
 #: Samples buffered between the Zenoh network and the reader thread, and between the reader
 #: thread and the loop (the oldest are dropped beyond that; only the newest time matters).
@@ -78,9 +84,9 @@ class Ros2ClockSource(TimeSource):
 
     Once running, time moves toward each newer ``/clock`` value, firing local deadlines in
     order; a ``/clock`` older than the loop's time is a backward jump (jump handlers run,
-    ``clock.sleep`` sleepers get :class:`~evclock.ClockJumped`, rates and timers re-anchor).
+    ``clock.sleep`` sleepers get :class:`~evclock.ClockJumpedError`, rates and timers re-anchor).
     If no sample arrives for ``silence_timeout`` wall seconds while the loop waits for one,
-    :class:`~evclock.ClockLost` ends the run (None: wait forever).
+    :class:`~evclock.ClockLostError` ends the run (None: wait forever).
     """
 
     external = True
@@ -186,8 +192,8 @@ class Ros2ClockSource(TimeSource):
     # ------------------------------------------------------------------ the contract
 
     def attach(self, loop: Any) -> None:
-        from .._errors import SimDriverError
-        from .._loop import SimEventLoop
+        from evclock._errors import SimDriverError
+        from evclock.hosts._loop import SimEventLoop
 
         # The host is the kernel of the loop this source drives; Zenoh's arrivals wake that
         # loop with call_soon_threadsafe, so only a SimEventLoop hosts a /clock follower.
@@ -225,7 +231,7 @@ class Ros2ClockSource(TimeSource):
             return
         silent = time.monotonic() - last
         if silent > limit:
-            raise ClockLost(
+            raise ClockLostError(
                 f"no {self._topic} message for {silent:.1f} s of wall time (the last one said "
                 f"{self._now / 1e9:.9f} s) from {self.describe()}; the publisher stopped or the "
                 f"connection is lost; raise silence_timeout (now {limit:g} s) or pass None to "
@@ -242,7 +248,7 @@ class Ros2ClockSource(TimeSource):
                 sample = handler.recv()
             except self._zenoh.ZError as exc:
                 if not self._closing:
-                    self._error = ClockLost(
+                    self._error = ClockLostError(
                         f"the Zenoh subscription to {self._key_expr} failed: {exc}"
                     )
                 return
@@ -305,7 +311,7 @@ class Ros2ClockSource(TimeSource):
             if self._error is not None:
                 raise self._error
             if timeout is not None and waited >= timeout:
-                raise ClockLost(
+                raise ClockLostError(
                     f"no {self._topic} message arrived within startup_timeout={timeout:g} s "
                     f"from {self.describe()}; is the simulator publishing, in domain "
                     f"{self._domain_id}, reachable through those endpoints?"

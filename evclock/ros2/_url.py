@@ -12,9 +12,9 @@ from __future__ import annotations
 import urllib.parse
 from typing import Any
 
-from .._errors import InvalidArgumentError
-from ._session import DEFAULT_CONNECT, DEFAULT_LISTEN
-from ._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
+from evclock._errors import InvalidArgumentError
+from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN
+from evclock.ros2._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
 
 SCHEME = "ros2"
 _KNOWN = ("domain_id", "connect", "listen", "startup_timeout", "silence_timeout", "node_name")

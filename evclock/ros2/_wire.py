@@ -25,7 +25,7 @@ import re
 import struct
 from typing import Final, Literal
 
-from .._errors import InvalidArgumentError, InvalidTypeError, Ros2MessageError
+from evclock._errors import InvalidArgumentError, InvalidTypeError, Ros2MessageError
 
 #: ROS 2 type and its DDS-mangled name as rmw_zenoh writes it into key expressions.
 CLOCK_TYPE: Final = "rosgraph_msgs/msg/Clock"
@@ -269,7 +269,7 @@ def endpoint_token(
 
 def entity_gid(token: str) -> bytes:
     """An entity's GID as rmw_zenoh derives it: XXH3-128 of its token, low 64 bits first."""
-    from ._session import require
+    from evclock.ros2._session import require
 
     xxhash = require("xxhash")
     digest: int = xxhash.xxh3_128_intdigest(token.encode())

@@ -14,13 +14,13 @@ from collections.abc import Callable
 from fractions import Fraction
 from typing import TYPE_CHECKING, Any
 
-from .._errors import InvalidArgumentError, InvalidTypeError, PhysicsError
-from .._extras import import_extra
-from .._time import SIM, Duration, Time, to_sim_time_ns
-from ._stepping import SteppingTimeSource, format_seconds
+from evclock._errors import InvalidArgumentError, InvalidTypeError, PhysicsError
+from evclock._extras import import_extra
+from evclock.sources._stepping import SteppingTimeSource, format_seconds
+from evclock.time._time import SIM, Duration, Time, to_sim_time_ns
 
 if TYPE_CHECKING:
-    from .._jumps import TimeJump
+    from evclock.kernel._jumps import TimeJump
 
 _NS_PER_S = 1_000_000_000
 
@@ -256,7 +256,7 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
 
         The world is emptied (bodies, constraints, gravity; PyBullet keeps the time step).
         Moving time is a jump (DESIGN section 7): jump handlers run, pending
-        ``clock.sleep`` calls and :meth:`wait_until` waits raise :class:`ClockJumped`, rates
+        ``clock.sleep`` calls and :meth:`wait_until` waits raise :class:`ClockJumpedError`, rates
         and timers re-anchor. Returns the jump, or None when time did not move.
         """
         self._check_not_advancing("reset_simulation()")

@@ -2,7 +2,7 @@
 predicate waits, and snapshots restored as time jumps.
 
 :class:`SteppingTimeSource` holds everything that does not depend on the engine; an adapter
-(:class:`~evclock.PyBulletTimeSource`, or your own for MuJoCo or a custom fixed-step
+(:class:`~evclock.sources.PyBulletTimeSource`, or your own for MuJoCo or a custom fixed-step
 integrator) implements a handful of methods: take ``count`` steps, read and set the engine's
 time step, and - for snapshots - save, restore and free an engine state.
 """
@@ -17,14 +17,15 @@ from collections.abc import Callable
 from fractions import Fraction
 from typing import TYPE_CHECKING, Any, Generic, Literal, TypeVar
 
-from .._errors import (
-    ClockJumped,
+from evclock._errors import (
+    ClockJumpedError,
     InvalidArgumentError,
     InvalidTypeError,
     NotRunningError,
     PhysicsError,
 )
-from .._time import (
+from evclock.kernel._source import Gate, TimeSource
+from evclock.time._time import (
     MAX_TIME_NS,
     SIM,
     Duration,
@@ -33,10 +34,9 @@ from .._time import (
     to_span_ns,
     whole_number,
 )
-from ._base import Gate, TimeSource
 
 if TYPE_CHECKING:
-    from .._jumps import TimeJump
+    from evclock.kernel._jumps import TimeJump
 
 _NS_PER_S = 1_000_000_000
 #: Largest denominator tried when recovering the fraction a float time step was typed as.
@@ -427,7 +427,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         return Time._from_ns(ns, SIM)
 
     async def sleep_steps(self, count: int) -> None:
-        """Sleep exactly ``count`` steps (a sim-time sleep: a jump raises ClockJumped).
+        """Sleep exactly ``count`` steps (a sim-time sleep: a jump raises ClockJumpedError).
 
         Prefer it to ``clock.sleep(count * dt)`` when whole steps matter: a float ``dt`` such
         as 1/240 s rounds to a whole nanosecond *above* the exact step (4166667 ns vs
@@ -460,7 +460,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         ``timeout`` (sim seconds or a Duration) raises :class:`TimeoutError` at the first step
         at or after the deadline where the predicate is still false. If the predicate raises,
         the error is raised here. A clock jump (reset, restored state) raises
-        :class:`ClockJumped`, like every pending sim-time wait.
+        :class:`ClockJumpedError`, like every pending sim-time wait.
         Costs nothing when no one waits.
         """
         if not callable(predicate):
@@ -546,7 +546,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         """Restore a :meth:`save_state` snapshot and its sim time.
 
         Time moves back (or forward) to the saved time as a jump: jump handlers run, pending
-        sim-time waits raise :class:`ClockJumped`, rates and timers re-anchor. Returns the
+        sim-time waits raise :class:`ClockJumpedError`, rates and timers re-anchor. Returns the
         jump, or None when the saved time is the current one (then no wait is interrupted).
         The time step is not part of a snapshot: the current one goes on.
         """
@@ -590,7 +590,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
             self._update_slow()
             for waiter in waiters:
                 if not waiter.future.done():
-                    waiter.future.set_exception(ClockJumped(jump))
+                    waiter.future.set_exception(ClockJumpedError(jump))
         return jump
 
     def describe(self) -> str:

@@ -1,7 +1,7 @@
 """A live dashboard for a PyBullet simulation run on sim time inside a web server.
 
 A Starlette app served by uvicorn embeds one of the ``evclock_sims`` scenarios (KUKA arm by
-default): a :class:`evclock.SimDriver` paces a :class:`evclock.PyBulletTimeSource` on the
+default): a :class:`evclock.SimDriver` paces a :class:`evclock.sources.PyBulletTimeSource` on the
 server's own event loop, the scenario's controllers run there as ordinary tasks on sim time,
 and the page shows a live view of the scene, sim time, the achieved real-time factor and
 each rate loop's tick and lateness statistics, with plots and controls (pause, step, resume,

@@ -1,8 +1,8 @@
 """The simulation behind the dashboard: a PyBullet scenario on a :class:`evclock.SimDriver`.
 
-:class:`SimService` owns a PyBullet client, a :class:`evclock.PyBulletTimeSource` stepping it
-and a driver that paces the source on the *server's* event loop. The scenario's controllers
-are ordinary tasks on that loop and wait on ``driver.clock`` (sim time), while the HTTP
+:class:`SimService` owns a PyBullet client, a :class:`evclock.sources.PyBulletTimeSource`
+stepping it and a driver that paces the source on the *server's* event loop. The scenario's
+controllers are ordinary tasks on that loop and wait on ``driver.clock`` (sim time), while the HTTP
 handlers and the history sampler, on the same loop, use plain asyncio (wall time).
 """
 
@@ -21,7 +21,8 @@ from typing import Any, Literal, cast
 
 import pybullet as p
 
-from evclock import PyBulletTimeSource, Rate, SimDriver
+from evclock import Rate, SimDriver
+from evclock.sources import PyBulletTimeSource
 from evclock_sims import Scenario, get_scenario
 
 from .config import DashboardConfig

@@ -1,0 +1,56 @@
+"""Stamped data on sim time: stamps, synchronisers, time-indexed buffers, stamp diagnostics.
+
+``from evclock.data import ApproximateTimeSynchronizer, TimeBuffer``. Messages carry stamps
+in a clock domain; synchronisers group streams by stamp (exact, and ROS's ApproximateTime
+policy); a :class:`TimeBuffer` answers "the value at time t"; :class:`StampDiagnostics` shows
+stamp age and consumers falling behind.
+
+Layer: above the hosts (it reads the running loop's clock). ``TimeBuffer`` needs numpy and is
+imported on first use.
+"""
+
+from typing import TYPE_CHECKING, Any
+
+from evclock._errors import ExtrapolationError, TimeLookupError
+from evclock.data._diagnostics import (
+    StampDiagnostics,
+    StampWarning,
+    StreamAgeStats,
+    diagnostics_report,
+)
+from evclock.data._stamped import StampClock, Stamped, StampKey, stamp_of
+from evclock.data._sync import ApproximateTimeSynchronizer, TimeSynchronizer
+
+if TYPE_CHECKING:
+    from evclock.data._buffer import Interpolation, TimeBuffer
+
+__all__ = [
+    "ApproximateTimeSynchronizer",
+    "ExtrapolationError",
+    "Interpolation",
+    "StampClock",
+    "StampDiagnostics",
+    "StampKey",
+    "StampWarning",
+    "Stamped",
+    "StreamAgeStats",
+    "TimeBuffer",
+    "TimeLookupError",
+    "TimeSynchronizer",
+    "diagnostics_report",
+    "stamp_of",
+]
+
+
+for _name in ("ExtrapolationError", "TimeLookupError"):
+    globals()[_name].__module__ = __name__
+del _name
+
+
+def __getattr__(name: str) -> Any:
+    # TimeBuffer needs numpy: imported on first use, so that importing this package stays light.
+    if name in ("Interpolation", "TimeBuffer"):
+        from evclock.data import _buffer
+
+        return getattr(_buffer, name)
+    raise AttributeError(f"module 'evclock.data' has no attribute {name!r}")

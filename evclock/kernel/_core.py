@@ -1,0 +1,700 @@
+"""The simulation kernel: one object owns sim time and the rule that advances it.
+
+Every host of sim time - :class:`~evclock.SimEventLoop` (the loop *is* the simulation) and
+:class:`~evclock.SimDriver` (a task on a loop evclock does not own) - keeps a :class:`SimCore`
+and asks it one question when nothing is runnable: :meth:`SimCore.advance`. The answer is
+one of the outcomes below; the host only supplies *how to wait* for each and answers the
+kernel's questions about the world around it (:class:`CoreHost`).
+
+The rule (DESIGN section 4), in order:
+
+1. something due at the current time, or a task runnable         -> ``DUE``: run it
+2. outside work holds sim time (executor jobs, holds, threads)    -> ``HELD``: wait for it
+3. nothing scheduled and the source cannot move on its own:
+   something outside could wake us (I/O, threads, peers)          -> ``WAIT_IO``
+   nothing could                                                   -> ``DEADLOCK``
+4. ask the source to advance toward the next deadline (gated by the pacer):
+   time moved                                                      -> ``MOVED``
+   the pacer said "not yet"                                        -> ``PACING`` (wait
+   :attr:`SimCore.pacing_delay` wall seconds; None: until a control changes)
+   an external source has no news from outside yet                 -> ``WAIT_SOURCE``
+
+Scheduling is the kernel's too: one heap of distinct deadlines in integer nanoseconds and,
+beside it, a dict from each deadline to what is due then: one entry, or a ``_Bucket`` of
+several in scheduling order (FIFO). The heap compares plain ints, at a third of the cost
+of comparing ``(when, seq, ...)`` tuples (measured: benchmarks/instructions.py). Nothing
+outside this module reads an entry. Kinds: a sim-time sleep future (``clock.sleep``), an
+asyncio ``TimerHandle`` (``call_at``, ``asyncio.sleep``, timeouts) and a stop mark (the
+target of ``step_until``/``run_until``: time stops there exactly). A second heap holds
+waits woken only once the work due at their time has settled (``SimDriver.run_until``).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+import operator
+import time
+from asyncio import futures
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any, Final, Protocol
+
+from evclock._errors import ClockJumpedError, InvalidArgumentError
+from evclock.kernel._jumps import JumpHandle, TimeJump
+from evclock.kernel._pacing import DEFAULT_MAX_LAG, Pacer
+from evclock.kernel._source import TimeSource
+from evclock.kernel._virtual import VirtualTimeSource
+from evclock.time._time import (
+    MAX_TIME_NS,
+    SIM,
+    Duration,
+    Time,
+    format_time_range_error,
+    sleep_duration_ns,
+)
+
+if TYPE_CHECKING:
+    from evclock.kernel._clock import SimClock
+
+#: What :meth:`SimCore.advance` tells its host.
+DUE: Final = 0  #: something is due or runnable at the current time: run it
+MOVED: Final = 1  #: sim time moved
+HELD: Final = 2  #: work outside the host holds sim time: wait for it in wall time
+PACING: Final = 3  #: pacing: wait ``pacing_delay`` wall seconds (None: until a control changes)
+WAIT_IO: Final = 4  #: nothing can move time on its own; something outside could wake us
+WAIT_SOURCE: Final = 5  #: an external source is waiting for news from outside
+DEADLOCK: Final = 6  #: nothing can ever wake a task
+
+# Entries: a future resolved when due (clock.sleep), an asyncio TimerHandle (call_at,
+# asyncio.sleep, timeouts) or _STOP, a point where time stops (step_until / run_until).
+_STOP: Final = object()
+_TimerHandle: type[Any] = asyncio.TimerHandle  # its private fields are read here
+
+
+class _Bucket(list[Any]):
+    """Several entries due at one deadline, in scheduling order."""
+
+    __slots__ = ()
+
+
+_Future = asyncio.Future
+# asyncio's own lookup of the running loop (exported, underscored): a future created with no
+# loop= on the running loop is bound to it, found in C.
+_running_loop = asyncio._get_running_loop
+# asyncio.sleep() schedules this function through call_later(); the kernel recognises it to
+# resolve the sleep's future exactly as the handle would (asyncio private, no public name).
+_SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
+_deadline = operator.itemgetter(0)
+_heappush = heapq.heappush
+_heappop = heapq.heappop
+#: Purge cancelled timers from the heap once they are this many and half of it.
+_PURGE_AT: Final = 64
+
+
+def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[None]:
+    """Wait ``duration`` (seconds or a :class:`Duration`) of sim time: ``SimClock.sleep``.
+
+    Every controller's hot path, so it lives here, in one frame: it converts the duration
+    and pushes the wait on the kernel's heap. Negative, NaN and infinite durations raise
+    :class:`InvalidArgumentError`, as does a wait beyond sim time's range.
+    """
+    if type(duration) is float and 0.0 <= duration < 1e9:
+        ns = round(duration * 1e9)
+    elif type(duration) is Duration and duration._ns >= 0:
+        ns = duration._ns
+    else:
+        ns = sleep_duration_ns(duration)
+    core = clock._core
+    when = core.now_ns + ns
+    if when > MAX_TIME_NS:
+        raise InvalidArgumentError(format_time_range_error("the wait", when))
+    loop = core.future_loop
+    if loop is not None and _running_loop() is loop:
+        # on the running loop, found in C (a loop= keyword costs a dict on every call)
+        fut: asyncio.Future[None] = _Future()
+    else:
+        fut = _Future(loop=loop) if loop is not None else core.future_factory()
+    if core._at.setdefault(when, fut) is fut:
+        _heappush(core._heap, when)
+    else:
+        core._add(when, fut)
+    if when < core.notify_before:
+        core.host.interrupt_wait()
+    return fut
+
+
+def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
+    """Wait until sim time reaches ``when_ns`` (at least now): ``SimClock._sleep_until_ns``,
+    the hot path of rates and timers."""
+    core = clock._core
+    now = core.now_ns
+    if when_ns < now:
+        when_ns = now
+    elif when_ns > MAX_TIME_NS:
+        raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
+    loop = core.future_loop
+    if loop is not None and _running_loop() is loop:
+        # on the running loop, found in C (a loop= keyword costs a dict on every call)
+        fut: asyncio.Future[None] = _Future()
+    else:
+        fut = _Future(loop=loop) if loop is not None else core.future_factory()
+    if core._at.setdefault(when_ns, fut) is fut:
+        _heappush(core._heap, when_ns)
+    else:
+        core._add(when_ns, fut)
+    if when_ns < core.notify_before:
+        core.host.interrupt_wait()
+    return fut
+
+
+class CoreHost(Protocol):
+    """What the kernel asks of the host it runs in (a SimEventLoop or a SimDriver)."""
+
+    def anything_runnable(self) -> bool:
+        """Is anything else runnable at the current time (a task, a callback)?"""
+        ...
+
+    def time_held(self) -> bool:
+        """Is sim time held by work outside the host (executor jobs, holds, busy threads)?"""
+        ...
+
+    def could_wake(self) -> bool:
+        """Could anything outside wake a task (registered I/O, signal handlers, threads,
+        peers)? False with nothing scheduled is a deadlock."""
+        ...
+
+    def interrupt_wait(self) -> None:
+        """End the host's current wait now: a deadline before :attr:`SimCore.notify_before`
+        was scheduled, time jumped, or an external source received news."""
+        ...
+
+    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Whether tasks of ``loop`` wait on this host's sim time."""
+        ...
+
+    def is_closed(self) -> bool: ...
+
+    def call_exception_handler(self, context: dict[str, Any]) -> None: ...
+
+    @property
+    def clock(self) -> SimClock: ...
+
+
+class SimCore:
+    """Sim time, its heap of deadlines, its source, pacing and jumps: the advancement rule.
+
+    Time sources talk to the kernel through :class:`~evclock.sources.SourceHost`, which this
+    class implements: :attr:`now_ns`, :meth:`stepped_to`, :meth:`work_ready`, :meth:`jump`,
+    :meth:`serves`, :meth:`time_arrived`, :attr:`clock`, :meth:`is_closed` and
+    :meth:`call_exception_handler`.
+    """
+
+    def __init__(
+        self,
+        source: TimeSource,
+        host: CoreHost,
+        *,
+        rtf: float | None = None,
+        strict: bool = False,
+        max_lag: float = DEFAULT_MAX_LAG,
+        wall: Callable[[], float] = time.perf_counter,
+    ) -> None:
+        #: Sim time in integer nanoseconds: what the source last returned.
+        self.now_ns: int = source.now_ns
+        self.source = source
+        self.host = host
+        self.pacer = Pacer(self._read_now, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall)
+        #: After PACING: wall seconds to wait before asking again (None: until a control changes).
+        self.pacing_delay: float | None = None
+        #: The host is told (:meth:`CoreHost.interrupt_wait`) of deadlines before this.
+        self.notify_before: int = -1
+        self.jump_handlers: list[JumpHandle] = []
+        #: Distinct deadlines (a heap) and what is due at each (see the module).
+        self._heap: list[int] = []
+        self._at: dict[int, Any] = {}
+        self._settled: list[tuple[int, int, asyncio.Future[None]]] = []
+        self._seq = itertools.count().__next__
+        self._cancelled_timers = 0
+        #: Creates the future of a sim-time wait, raising if waits are impossible now or here
+        #: (closed loop, stopped driver, wrong thread): set by the host.
+        self.future_factory: Callable[[], asyncio.Future[None]]
+        #: Or, faster, the loop a plain future is created on when waits are possible there
+        #: with no further check (an open SimEventLoop); None: use ``future_factory``.
+        self.future_loop: asyncio.AbstractEventLoop | None = None
+        self._anything_runnable = host.anything_runnable
+        # The default source moves exactly to any later target it is given: the hot path
+        # (wake_next) moves it itself instead of calling its advance() (exact type only: a
+        # subclass may override advance()).
+        self._virtual = source if type(source) is VirtualTimeSource else None
+
+    def _read_now(self) -> int:
+        return self.now_ns
+
+    # ------------------------------------------------------------ scheduling
+
+    def call_at(self, when_ns: int, timer: Any) -> None:
+        """Schedule an asyncio ``TimerHandle`` at ``when_ns`` (beyond the time range: never)."""
+        if when_ns <= MAX_TIME_NS:
+            if self._at.setdefault(when_ns, timer) is timer:
+                heapq.heappush(self._heap, when_ns)
+            else:
+                self._add(when_ns, timer)
+            timer._scheduled = True
+
+    def _add(self, when_ns: int, entry: Any) -> None:
+        """Schedule ``entry`` at ``when_ns``, after what is due then already."""
+        at = self._at
+        present = at.setdefault(when_ns, entry)
+        if present is entry:
+            heapq.heappush(self._heap, when_ns)
+        elif type(present) is _Bucket:
+            present.append(entry)
+        else:
+            at[when_ns] = _Bucket((present, entry))
+
+    def timer_cancelled(self) -> None:
+        """A scheduled timer was cancelled (it stays in the heap until purged)."""
+        self._cancelled_timers += 1
+
+    def stop_at(self, when_ns: int) -> None:
+        """Make time stop exactly at ``when_ns`` on its way (step_until, run_until)."""
+        self._add(when_ns, _STOP)
+        if when_ns < self.notify_before:
+            self.host.interrupt_wait()
+
+    def wait_settled(self, when_ns: int) -> asyncio.Future[None]:
+        """A future resolved at ``when_ns`` once the work due then has settled
+        (:meth:`wake_settled`); time stops there exactly."""
+        fut = self.future_factory()
+        heapq.heappush(self._settled, (when_ns, self._seq(), fut))
+        if when_ns < self.notify_before:
+            self.host.interrupt_wait()
+        return fut
+
+    def next_deadline(self) -> int | None:
+        """The earliest live deadline, dropping cancelled entries at the head."""
+        heap = self._heap
+        at = self._at
+        while heap and self._dead(at[heap[0]]):
+            del at[heapq.heappop(heap)]
+        if self._cancelled_timers > _PURGE_AT and self._cancelled_timers * 2 > len(heap):
+            self._purge()
+        settled = self._settled
+        while settled and settled[0][2].done():
+            heapq.heappop(settled)
+        if heap:
+            head = heap[0]
+            return min(head, settled[0][0]) if settled else head
+        return settled[0][0] if settled else None
+
+    def has_pending(self) -> bool:
+        """Whether any scheduled wait or timer can still fire (for deadlock detection)."""
+        return self.next_deadline() is not None
+
+    def _dead(self, entry: Any) -> bool:
+        """Whether nothing in ``entry`` (at the heap's head) can fire any more; then it is
+        dropped: a cancelled timer leaves the count of those to purge."""
+        if type(entry) is _Bucket:
+            for one in entry:
+                if one is _STOP:
+                    return False
+                if isinstance(one, _TimerHandle):
+                    if not one._cancelled:
+                        return False
+                elif not one.done():
+                    return False
+            for one in entry:
+                if isinstance(one, _TimerHandle):
+                    one._scheduled = False
+                    self._cancelled_timers -= 1
+            return True
+        if entry is _STOP:
+            return False
+        if isinstance(entry, _TimerHandle):
+            if not entry._cancelled:
+                return False
+            entry._scheduled = False
+            self._cancelled_timers -= 1
+            return True
+        return bool(entry.done())
+
+    def _entries(self) -> list[tuple[int, Any]]:
+        """Every scheduled ``(when_ns, entry)``, in firing order."""
+        at = self._at
+        out: list[tuple[int, Any]] = []
+        for when in sorted(self._heap):
+            entry = at[when]
+            if type(entry) is _Bucket:
+                out.extend((when, one) for one in entry)
+            else:
+                out.append((when, entry))
+        return out
+
+    def _rebuild(self, entries: list[tuple[int, Any]]) -> None:
+        """Schedule exactly ``entries`` (``(when_ns, entry)``, in firing order)."""
+        self._heap.clear()
+        self._at.clear()
+        for when, entry in entries:
+            self._add(when, entry)
+
+    def _purge(self) -> None:
+        keep = []
+        for when, entry in self._entries():
+            if isinstance(entry, _TimerHandle):
+                if entry._cancelled:
+                    entry._scheduled = False
+                    continue
+            elif entry is not _STOP and entry.done():
+                continue
+            keep.append((when, entry))
+        self._rebuild(keep)
+        self._cancelled_timers = 0
+
+    # ------------------------------------------------------------- firing
+
+    def take_due(self) -> list[Any] | None:
+        """Pop every entry due at the current time (to :meth:`fire` after the ready
+        callbacks, as asyncio does with its timers), or None."""
+        heap = self._heap
+        now = self.now_ns
+        if not heap or heap[0] > now:
+            return None
+        return self._pop_due(now, [])
+
+    def _pop_due(self, now: int, due: list[Any]) -> list[Any]:
+        """Append the entries due at ``now`` to ``due``, in order."""
+        heap = self._heap
+        pop = self._at.pop
+        while heap and heap[0] <= now:
+            entry = pop(heapq.heappop(heap))
+            if type(entry) is _Bucket:
+                due.extend(entry)
+            else:
+                due.append(entry)
+        return due
+
+    def fire(self, due: list[Any], ready: Any) -> None:
+        """Fire entries from :meth:`take_due`, in (when, seq) order, on a SimEventLoop.
+
+        The order is exactly stock asyncio's: a timer callback runs here; a resolved sleep's
+        wake-ups (its task's step) go to the end of the ready queue - except that the last
+        due entry, when nothing is queued yet, wakes its waiters in place: they would have
+        been the very next callbacks to run anyway, and no Handle is allocated.
+        """
+        last = len(due) - 1
+        for i, obj in enumerate(due):
+            if obj is _STOP:
+                continue
+            if not isinstance(obj, _TimerHandle):
+                if obj.done():
+                    continue
+                fut, result = obj, None
+            else:
+                obj._scheduled = False
+                if obj._cancelled:
+                    self._cancelled_timers -= 1
+                    continue
+                if obj._callback is not _SET_RESULT_UNLESS_CANCELLED or obj._args[0].done():
+                    obj._run()
+                    continue
+                fut, result = obj._args
+            if i == last and not ready:
+                self._wake_in_place(fut, result)
+            else:
+                fut.set_result(result)
+
+    def _wake_in_place(self, fut: asyncio.Future[Any], result: object) -> None:
+        """Resolve ``fut`` and run its done-callbacks right here (no call_soon hop)."""
+        # a copy (the pure-Python future returns its own list; a C one None when empty)
+        callbacks = list(fut._callbacks or ())
+        for callback, _ctx in callbacks:
+            fut.remove_done_callback(callback)
+        fut.set_result(result)
+        for callback, ctx in callbacks:
+            try:
+                ctx.run(callback, fut)
+            except (SystemExit, KeyboardInterrupt):
+                raise
+            except BaseException as exc:
+                self._report_wakeup_error(exc)
+
+    def _report_wakeup_error(self, exc: BaseException) -> None:
+        self.host.call_exception_handler(
+            {"message": "Exception in a wake-up callback of a sim-time wait", "exception": exc}
+        )
+
+    def wake_due(self) -> bool:
+        """Resolve every sleep due now through its future (hosts on a foreign loop)."""
+        heap = self._heap
+        now = self.now_ns
+        woke = False
+        if heap and heap[0] <= now:
+            for obj in self._pop_due(now, []):
+                if obj is not _STOP and not isinstance(obj, _TimerHandle) and not obj.done():
+                    obj.set_result(None)
+                    woke = True
+        return woke
+
+    def wake_settled(self) -> bool:
+        """Resolve the :meth:`wait_settled` waits due now."""
+        settled = self._settled
+        now = self.now_ns
+        woke = False
+        while settled and settled[0][0] <= now:
+            fut = heapq.heappop(settled)[2]
+            if not fut.done():
+                fut.set_result(None)
+                woke = True
+        return woke
+
+    def due_now(self) -> bool:
+        """Whether an entry of the main heap is due at the current time."""
+        heap = self._heap
+        return bool(heap) and heap[0] <= self.now_ns
+
+    def settled_due_now(self) -> bool:
+        """Whether a :meth:`wait_settled` wait is due at the current time."""
+        settled = self._settled
+        return bool(settled) and settled[0][0] <= self.now_ns
+
+    # ------------------------------------------------------------- the rule
+
+    def advance(self) -> int:
+        """Nothing ran at the current time: decide and, if possible, move time (see module)."""
+        target = self.next_deadline()
+        if (target is not None and target <= self.now_ns) or self._anything_runnable():
+            return DUE
+        host = self.host
+        if host.time_held():
+            return HELD
+        if self._anything_runnable():
+            return DUE  # a thread handed work over (and ended) while the host looked
+        source = self.source
+        if target is None and not source.free_running:
+            return WAIT_IO if host.could_wake() else DEADLOCK
+        pacer = self.pacer
+        gate = None if pacer.unpaced else pacer.allow
+        before = self.now_ns
+        now = self.now_ns = source.advance(target, gate)
+        if now != before:
+            return MOVED
+        if gate is not None and pacer.refused:
+            self.pacing_delay = pacer.delay
+            return PACING
+        if source.external:
+            return WAIT_SOURCE
+        return DUE  # a step hook woke a task before time could move
+
+    def wake_next(self, ready: Any) -> bool:
+        """The hot path, when the host checked that nothing else can matter (no pacing, no
+        I/O, no outside work, nothing ready): advance straight to the next deadline and fire
+        what is due there. False if nothing is scheduled (the host applies :meth:`advance`).
+
+        Same order as :meth:`take_due` then :meth:`fire`; if the advance itself made work
+        ready (a step hook), the host runs it first.
+        """
+        heap = self._heap
+        at = self._at
+        virtual = self._virtual
+        # The common case first: one task waits alone at the next deadline (deadlines are
+        # distinct), later than now, on the default source, on a clock.sleep future or on
+        # asyncio.sleep's timer (a cancelled timer has no callback).
+        if virtual is not None and heap:
+            when = heap[0]
+            if when > self.now_ns:
+                entry = at[when]
+                if type(entry) is _Future:
+                    fut, result = entry, None
+                elif (
+                    isinstance(entry, _TimerHandle)
+                    and entry._callback is _SET_RESULT_UNLESS_CANCELLED
+                ):
+                    fut, result = entry._args
+                    entry._scheduled = False  # leaves the heap below (else restored)
+                else:
+                    fut = None
+                if fut is not None:
+                    try:
+                        # Exactly one done-callback (a task's wake-up): the future is
+                        # pending, as a future drops its callbacks when it completes.
+                        ((callback, ctx),) = fut._callbacks
+                    except (TypeError, ValueError, AttributeError):
+                        # done, several waiters, none, not a future: below
+                        if fut is not entry:
+                            entry._scheduled = True
+                    else:
+                        virtual._now = self.now_ns = when
+                        _heappop(heap)
+                        del at[when]
+                        # wake the task here (as below; inlined in both, as the hot paths
+                        # of virtual time and of stepping sources)
+                        fut.remove_done_callback(callback)
+                        fut.set_result(result)
+                        try:
+                            ctx.run(callback, fut)
+                        except (SystemExit, KeyboardInterrupt):
+                            raise
+                        except BaseException as exc:
+                            self._report_wakeup_error(exc)
+                        return True
+        # Every other case: timers, buckets, dead entries, stepping sources, entries due now.
+        while heap:
+            when = heap[0]
+            obj = at[when]
+            if type(obj) is _Future:
+                if not obj.done():
+                    break
+            elif isinstance(obj, _TimerHandle):
+                if not obj._cancelled:
+                    break
+                obj._scheduled = False
+                self._cancelled_timers -= 1
+            elif not self._dead(obj):
+                break
+            _heappop(heap)
+            del at[when]
+        else:
+            return False
+        now = self.now_ns
+        if when > now:
+            if virtual is not None:
+                # VirtualTimeSource.advance(when, None), inlined: it moves exactly to any
+                # later target (the hot path's one call saved)
+                virtual._now = self.now_ns = now = when
+            else:
+                now = self.now_ns = self.source.advance(when, None)
+                if ready or not heap:
+                    return True
+                when = heap[0]  # a step hook may have scheduled (or jumped) meanwhile
+                if when > now:
+                    return True  # a stepping source returns in chunks on long advances
+                obj = at[when]
+        _heappop(heap)
+        del at[when]
+        if type(obj) is not _Bucket and (not heap or heap[0] > now):  # alone and due
+            if type(obj) is _Future:
+                fut, result = obj, None
+            elif isinstance(obj, _TimerHandle):
+                if obj._callback is _SET_RESULT_UNLESS_CANCELLED:
+                    obj._scheduled = False
+                    fut, result = obj._args  # asyncio.sleep's future
+                else:
+                    fut = None
+            elif obj is _STOP:
+                fut = None
+            else:
+                fut, result = obj, None  # a future of another type (a foreign loop's)
+            if fut is not None and not fut.done():
+                try:
+                    ((callback, ctx),) = fut._callbacks  # one task waits: inline
+                except (TypeError, ValueError):
+                    self._wake_in_place(fut, result)  # several waiters, or none
+                else:
+                    fut.remove_done_callback(callback)
+                    fut.set_result(result)
+                    try:
+                        ctx.run(callback, fut)
+                    except (SystemExit, KeyboardInterrupt):
+                        raise
+                    except BaseException as exc:
+                        self._report_wakeup_error(exc)
+                return True
+        self.fire(self._pop_due(now, list(obj) if type(obj) is _Bucket else [obj]), ready)
+        return True
+
+    # ------------------------------------------------ what time sources use
+
+    @property
+    def clock(self) -> SimClock:
+        """The sim clock tasks on this host read."""
+        return self.host.clock
+
+    def stepped_to(self, now_ns: int) -> None:
+        """A source moving in several increments publishes each new time (before its hooks)."""
+        self.now_ns = now_ns
+
+    def time_arrived(self) -> None:
+        """An external source received news from outside (call it from the reader callback):
+        the host asks the source to advance again at once instead of at its next poll."""
+        self.host.interrupt_wait()
+
+    def work_ready(self) -> bool:
+        """Whether a task became runnable (a stepping source stops stepping then)."""
+        return self._anything_runnable()
+
+    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+        """Whether tasks of ``loop`` wait on this sim time."""
+        return self.host.serves(loop)
+
+    def is_closed(self) -> bool:
+        """True once the host closed (a source then moves its time without a jump)."""
+        return self.host.is_closed()
+
+    def call_exception_handler(self, context: dict[str, Any]) -> None:
+        """Report an error from a source (a failing step hook) to the host."""
+        self.host.call_exception_handler(context)
+
+    def jump(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
+        """Move sim time discontinuously (a reset, a restored snapshot, ``set_time``).
+
+        Pre-jump handlers run, ``assign(after_ns)`` gives the source its new time, every
+        pending sim-time wait is woken with :class:`ClockJumpedError`, asyncio timers keep their
+        remaining delay, stop marks ahead of the new time stay, pacing re-anchors, then
+        post-jump handlers run.
+        """
+        jump = TimeJump(Time._from_ns(before_ns, SIM), Time._from_ns(after_ns, SIM))
+        handlers = [h for h in list(self.jump_handlers) if h.threshold.matches(jump)]
+        for handler in handlers:
+            if handler.pre is not None:
+                handler.pre(jump)
+        assign(after_ns)
+        self.now_ns = after_ns
+        delta = after_ns - before_ns
+        kept = []
+        woken: list[asyncio.Future[None]] = []
+        for when_ns, obj in self._entries():
+            if obj is _STOP:
+                if when_ns > after_ns:
+                    kept.append((when_ns, obj))
+            elif isinstance(obj, _TimerHandle):
+                if obj._cancelled:
+                    obj._scheduled = False
+                    continue
+                shifted = max(when_ns + delta, after_ns)
+                obj._when = shifted / 1_000_000_000
+                kept.append((shifted, obj))
+            elif not obj.done():
+                woken.append(obj)
+        kept.sort(key=_deadline)  # stable: equal deadlines keep their order
+        self._rebuild(kept)
+        self._cancelled_timers = 0
+        settled, self._settled = self._settled, []
+        woken.extend(fut for _, _, fut in settled if not fut.done())
+        for fut in woken:
+            fut.set_exception(ClockJumpedError(jump))
+        self.pacer.reanchor()
+        self.host.interrupt_wait()
+        for handler in handlers:
+            if handler.post is not None:
+                handler.post(jump)
+        return jump
+
+    # ------------------------------------------------------------- shutdown
+
+    def end_waits(self, failure: Exception | None, settled_error: Callable[[], Exception]) -> None:
+        """The host stops for good: pending waits raise ``failure`` (or are cancelled);
+        :meth:`wait_settled` waits raise ``failure`` or ``settled_error()``."""
+        entries = self._entries()
+        self._heap, self._at = [], {}
+        for _, obj in entries:
+            if obj is _STOP or isinstance(obj, _TimerHandle) or obj.done():
+                continue
+            if failure is not None:
+                obj.set_exception(failure)
+            else:
+                obj.cancel()
+        settled, self._settled = self._settled, []
+        for _, _, fut in settled:
+            if not fut.done():
+                fut.set_exception(failure or settled_error())

@@ -1,0 +1,64 @@
+"""Pure virtual time: a discrete-event source that jumps straight to the next deadline."""
+
+from __future__ import annotations
+
+from evclock._errors import InvalidArgumentError, InvalidTypeError
+from evclock.kernel._source import Gate, TimeSource
+from evclock.time._time import MAX_TIME_NS, format_time_range_error, whole_number
+
+
+class VirtualTimeSource(TimeSource):
+    """Discrete-event time: when every task waits, time jumps exactly to the next deadline.
+
+    ``start_ns`` sets the initial time (for example an epoch-like ``1_700_000_000 * 10**9``).
+    With nothing scheduled time cannot move, so an idle program is a deadlock.
+    """
+
+    free_running = False
+
+    def __init__(self, start_ns: int = 0) -> None:
+        start = whole_number(start_ns)
+        if start is None:
+            raise InvalidTypeError(
+                f"start_ns must be an int number of nanoseconds, got {type(start_ns).__name__}"
+            )
+        if start < 0:
+            raise InvalidArgumentError(f"start_ns must not be negative, got {start_ns}")
+        if start > MAX_TIME_NS:
+            raise InvalidArgumentError(format_time_range_error("start_ns", start))
+        self._now = start
+
+    @property
+    def now_ns(self) -> int:
+        return self._now
+
+    def advance(self, target_ns: int | None, gate: Gate) -> int:
+        if target_ns is not None and target_ns > self._now and (gate is None or gate(target_ns)):
+            self._now = target_ns
+        return self._now
+
+    def set_time(self, new_ns: int) -> None:
+        """Move time to ``new_ns`` (backwards or forwards) as a jump, like a simulator reset.
+
+        Jump handlers run and pending sim-time sleeps are woken with :class:`ClockJumpedError`.
+        """
+        if whole_number(new_ns) is None:
+            raise InvalidTypeError(
+                f"set_time() needs an int number of nanoseconds, got {type(new_ns).__name__}"
+            )
+        new_ns = int(new_ns)
+        if not 0 <= new_ns <= MAX_TIME_NS:
+            raise InvalidArgumentError(
+                f"set_time() needs a non-negative int of nanoseconds, got {new_ns!r}"
+            )
+        host = self._host
+        if host is None:
+            self._now = new_ns
+            return
+        host.jump(self._now, new_ns, self._assign)
+
+    def _assign(self, new_ns: int) -> None:
+        self._now = new_ns
+
+    def describe(self) -> str:
+        return "virtual time"

@@ -1,0 +1,51 @@
+"""Sim time across processes: a clock server in the simulation, participants that join it.
+
+``from evclock.remote import serve, participant``. A simulation serves its time
+(:func:`serve`, :class:`ClockServer`); a process joins with ``evclock.run(main(),
+clock="unix://...")`` and follows it or runs in lockstep with it.
+
+* :mod:`._address` parses ``unix:///path`` / ``tcp://host:port`` endpoints and opens sockets;
+* :mod:`._protocol` is the length-prefixed binary framing and its version handshake;
+* :mod:`._server` serves a :class:`~evclock.SimEventLoop`'s time (follow and lockstep);
+* :mod:`._participant` is the time source of a process that joins (``clock="unix://..."``);
+* :mod:`._physics` lets scenario controllers call PyBullet in the simulation process.
+
+
+Layer: above the hosts (the server lives on a ``SimEventLoop``; the participant is a time
+source); imported by ``evclock.tools`` for the command line.
+"""
+
+from evclock._errors import (
+    ClockLostError,
+    JoinRefusedError,
+    ParticipantLostError,
+    ProtocolError,
+    RemoteCallError,
+    RemoteClockError,
+)
+from evclock.remote._participant import RemoteClockSource, participant
+from evclock.remote._server import ClockServer, Message, serve
+
+__all__ = [
+    "ClockLostError",
+    "ClockServer",
+    "JoinRefusedError",
+    "Message",
+    "ParticipantLostError",
+    "ProtocolError",
+    "RemoteCallError",
+    "RemoteClockError",
+    "RemoteClockSource",
+    "participant",
+    "serve",
+]
+
+for _name in (
+    "JoinRefusedError",
+    "ParticipantLostError",
+    "ProtocolError",
+    "RemoteCallError",
+    "RemoteClockError",
+):
+    globals()[_name].__module__ = __name__
+del _name

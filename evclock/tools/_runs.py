@@ -1,0 +1,380 @@
+"""One scenario run: set up the world, run the controllers, report (``evclock run``).
+
+On sim time the physics is stepped from evclock's loop while the scenario's controllers run as
+tasks; ``wall=True`` runs the same controllers on wall time while a "world" task steps the
+physics in real time, the stand-in for real hardware. :func:`run_scenario` returns a
+:class:`RunReport`; a sweep runs the same function in each worker process, so a sweep row
+equals the single run of the same seed and parameters.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import ctypes
+import dataclasses
+import math
+import os
+import re
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from evclock._errors import EvClockError, InvalidArgumentError, InvalidTypeError
+from evclock.data._diagnostics import diagnostics_report
+from evclock.hosts._current import clock
+from evclock.hosts._loop import SimEventLoop
+from evclock.hosts._runner import run as evclock_run
+from evclock.kernel._clock import Clock
+from evclock.kernel._pacing import check_rtf
+from evclock.tools._scenarios import ParamValue, configure, load_scenario
+
+if TYPE_CHECKING:
+    from rich.progress import Progress
+
+    from evclock.ros2._cli import Ros2ClockOptions
+    from evclock.tools._record import Recorder
+
+PHYSICS_HZ = 240
+_PROGRESS_PERIOD = 0.05  # sim seconds between progress refreshes
+
+
+@dataclasses.dataclass
+class LoopReport:
+    """One rate loop's figures at the end of a run."""
+
+    name: str
+    hz: float
+    stats: dict[str, float | int]
+
+
+@dataclasses.dataclass
+class RunReport:
+    """What a scenario run produced: success, timing, per-loop statistics, final state.
+
+    ``finished`` is False when the run was cut short by its ``until`` limit before the
+    mission ended (then the mission was neither accomplished nor failed).
+    """
+
+    scenario: str
+    seed: int
+    mode: str
+    success: bool
+    finished: bool
+    sim_time_s: float
+    wall_time_s: float
+    achieved_rtf: float | None
+    summary: dict[str, Any]
+    loops: list[LoopReport]
+    final_state: list[float]
+    params: dict[str, ParamValue] = dataclasses.field(default_factory=dict)
+    until_s: float = math.nan
+    setup_output: list[str] = dataclasses.field(default_factory=list)
+    """What the physics engine printed while the world was set up (deduplicated, counted)."""
+    stamps: list[dict[str, Any]] = dataclasses.field(default_factory=list)
+    """Stamp diagnostics the scenario used (see evclock.data._diagnostics), if any."""
+
+    @property
+    def verdict(self) -> str:
+        """``success``, ``failed`` or ``cut short``."""
+        if not self.finished:
+            return "cut short"
+        return "success" if self.success else "failed"
+
+    def to_json(self) -> dict[str, Any]:
+        """Plain JSON data (non-finite floats become null)."""
+        data = dataclasses.asdict(self)
+        data["summary"] = {k: _jsonable(v) for k, v in self.summary.items()}
+        data["until_s"] = _jsonable(self.until_s)
+        data["verdict"] = self.verdict
+        return data
+
+
+def _jsonable(value: object) -> object:
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def parse_rtf(text: str) -> float | None:
+    """``max`` (as fast as possible) or a positive real-time factor."""
+    if text.strip().lower() == "max":
+        return None
+    try:
+        return check_rtf(float(text))
+    except (ValueError, EvClockError):
+        raise InvalidArgumentError(
+            f"--rtf takes 'max' (as fast as possible) or a positive number (1 = real time), "
+            f"got {text!r}"
+        ) from None
+
+
+def check_display_for_gui() -> None:
+    """PyBullet's GUI on Linux needs an X display: fail clearly instead of with an X error."""
+    if sys.platform.startswith("linux") and not os.environ.get("DISPLAY"):
+        raise InvalidArgumentError(
+            "--gui needs a display, but DISPLAY is not set (no X server here): run without "
+            "--gui, or under a virtual display: xvfb-run evclock run ... --gui"
+        )
+
+
+_BULLET_MESSAGE = re.compile(r"b3(?:Warning|Error|Printf)\[[^\]]*\]:\s*")
+
+
+@contextlib.contextmanager
+def captured_native_stdout(lines: list[str]) -> Iterator[None]:
+    """Collect what native code prints on file descriptor 1 into ``lines``, so the engine's
+    set-up chatter (Bullet's ``b3Warning[file,line]: message``) does not tear through the
+    progress bar. Each distinct message appears once, prefixed by its count when repeated,
+    in order of first appearance. Python's own prints are flushed first and not captured."""
+    libc = ctypes.CDLL(None)
+    sys.stdout.flush()
+    libc.fflush(None)
+    saved = os.dup(1)
+    with tempfile.TemporaryFile() as sink:
+        os.dup2(sink.fileno(), 1)
+        try:
+            yield
+        finally:
+            libc.fflush(None)
+            os.dup2(saved, 1)
+            os.close(saved)
+            sink.seek(0)
+            text = sink.read().decode(errors="replace")
+    messages = (" ".join(m.split()) for m in _BULLET_MESSAGE.split(text))
+    counts = collections.Counter(m for m in messages if m)
+    lines.extend(f"{n}x {message}" if n > 1 else message for message, n in counts.items())
+
+
+def _loop_reports(clk: Clock) -> list[LoopReport]:
+    return [LoopReport(rate.name, float(rate.hz), rate.stats.as_dict()) for rate in clk.rates]
+
+
+def scenario_class(scenario: str | type[Any], params: dict[str, ParamValue]) -> type[Any]:
+    """The class ``scenario`` names (see :func:`load_scenario`) with ``params`` applied."""
+    cls = load_scenario(scenario) if isinstance(scenario, str) else scenario
+    return configure(cls, params)
+
+
+def run_scenario(
+    scenario: str | type[Any],
+    *,
+    until: float | None = None,
+    rtf: float | None = None,
+    seed: int = 0,
+    params: dict[str, ParamValue] | None = None,
+    gui: bool = False,
+    wall: bool = False,
+    record: Path | None = None,
+    progress: Progress | None = None,
+    ros2_clock: Ros2ClockOptions | None = None,
+) -> RunReport:
+    """Run ``scenario`` (a name, ``module:Class``, a file, or a class) once and report.
+
+    On sim time unless ``wall`` (see the module docstring); ``record`` writes an MCAP
+    recording (sim time only); ``progress`` (a rich Progress, refreshed by the run itself)
+    shows sim time and the achieved real-time factor; ``ros2_clock`` publishes sim time as
+    ROS 2 ``/clock`` meanwhile (see :mod:`evclock.ros2`).
+    """
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise InvalidTypeError(f"seed must be an int, got {seed!r}")
+    params = dict(params or {})
+    cls = scenario_class(scenario, params)
+    limit = cls.default_until if until is None else until
+    if isinstance(limit, bool) or not (
+        isinstance(limit, int | float) and math.isfinite(limit) and limit > 0
+    ):
+        raise InvalidArgumentError(f"--until must be a positive number of seconds, got {until!r}")
+    if gui:
+        check_display_for_gui()
+    if wall:
+        if record is not None:
+            raise InvalidArgumentError("--record needs sim time: drop --wall to record a run")
+        if ros2_clock is not None:
+            raise InvalidArgumentError("--ros2-clock publishes sim time: drop --wall")
+        report = _run_on_wall_time(cls, float(limit), seed, gui, progress)
+    else:
+        report = _run_on_sim_time(
+            cls, float(limit), rtf, seed, params, gui, record, progress, ros2_clock
+        )
+    report.params = params
+    return report
+
+
+def _set_up(cls: type[Any], client: int, seed: int, output: list[str]) -> Any:
+    with captured_native_stdout(output):
+        return cls(client, seed)
+
+
+def _finish_progress(progress: Progress | None, task_id: Any, sim_s: float, cut: bool) -> None:
+    """Leave the bar full: a mission that ended early completes it at its end time."""
+    if progress is None:
+        return
+    if cut:
+        progress.update(task_id, completed=sim_s)
+    else:
+        progress.update(task_id, total=sim_s, completed=sim_s)
+    progress.refresh()
+
+
+def _run_on_sim_time(
+    cls: type[Any],
+    limit: float,
+    rtf: float | None,
+    seed: int,
+    params: dict[str, ParamValue],
+    gui: bool,
+    record: Path | None,
+    progress: Progress | None,
+    ros2_clock: Ros2ClockOptions | None = None,
+) -> RunReport:
+    from evclock.ros2._cli import publishing
+    from evclock.sources import PyBulletTimeSource
+
+    output: list[str] = []
+    recorder: Recorder | None = None
+    source = PyBulletTimeSource.connect(gui=gui)
+    try:
+        scenario = _set_up(cls, source.client, seed, output)
+        if record is not None:
+            from evclock.tools._record import Recorder
+
+            metadata = {"scenario": cls.name, "seed": seed, "params": params, "until_s": limit}
+            recorder = Recorder(record, {**metadata, "class": cls.__qualname__})
+    except BaseException:
+        source.close()
+        raise
+    task_id = progress.add_task(cls.name, total=limit, rtf="-") if progress else None
+
+    async def show_progress(loop: SimEventLoop) -> None:
+        assert progress is not None
+        while True:
+            achieved = loop.achieved_rtf()
+            progress.update(
+                task_id,  # type: ignore[arg-type]
+                completed=min(loop.time(), limit),
+                rtf="-" if achieved is None else f"{achieved:.2f}",
+            )
+            progress.refresh()
+            await asyncio.sleep(_PROGRESS_PERIOD)
+
+    async def main() -> RunReport:
+        loop = asyncio.get_running_loop()
+        assert isinstance(loop, SimEventLoop)
+        clk = clock()
+        if recorder is not None:
+            recorder.attach(source, clk, scenario.state_vector)
+        shower = asyncio.create_task(show_progress(loop)) if progress else None
+        wall0 = time.perf_counter()
+        loop.achieved_rtf()
+        finished = True
+        try:
+            async with asyncio.timeout(limit):
+                await scenario.run(clk)
+        except TimeoutError:
+            finished = False
+        finally:
+            if shower is not None:
+                shower.cancel()
+        wall_s = time.perf_counter() - wall0
+        sim_s = loop.time()
+        if recorder is not None:
+            recorder.observe()
+        _finish_progress(progress, task_id, sim_s, not finished)
+        achieved = sim_s / wall_s if wall_s > 0 else None
+        return RunReport(
+            scenario=cls.name,
+            seed=seed,
+            mode="sim",
+            success=scenario.success(),
+            finished=finished,
+            sim_time_s=sim_s,
+            wall_time_s=wall_s,
+            achieved_rtf=achieved,
+            summary=scenario.summary(),
+            loops=_loop_reports(clk),
+            final_state=scenario.state_vector(),
+            stamps=diagnostics_report(),
+            until_s=limit,
+            setup_output=output,
+        )
+
+    report: RunReport | None = None
+    try:
+        with publishing(source, ros2_clock):
+            report = evclock_run(main(), source=source, rtf=rtf)
+    finally:
+        if recorder is not None:
+            recorder.close(None if report is None else _outcome(report))
+    assert report is not None
+    return report
+
+
+def _outcome(report: RunReport) -> dict[str, Any]:
+    data = report.to_json()
+    return {key: data[key] for key in ("verdict", "success", "sim_time_s", "summary")}
+
+
+def _run_on_wall_time(
+    cls: type[Any], limit: float, seed: int, gui: bool, progress: Progress | None
+) -> RunReport:
+    import pybullet as p
+
+    cid = p.connect(p.GUI if gui else p.DIRECT)
+    output: list[str] = []
+    try:
+        scenario = _set_up(cls, cid, seed, output)
+        task_id = progress.add_task(cls.name, total=limit, rtf="1 (wall)") if progress else None
+        refresh_every = round(PHYSICS_HZ * _PROGRESS_PERIOD)
+
+        async def world() -> None:
+            # The stand-in for real hardware: physics advances with the wall clock.
+            async for tick in clock().rate(PHYSICS_HZ, name="world (physics)"):
+                p.stepSimulation(physicsClientId=cid)
+                if progress is not None and tick.index % refresh_every == 0:
+                    elapsed = time.perf_counter() - wall0
+                    progress.update(task_id, completed=min(elapsed, limit))  # type: ignore[arg-type]
+                    progress.refresh()
+
+        async def main() -> RunReport:
+            clk = clock()
+            start = clk.now().seconds
+            physics = asyncio.create_task(world())
+            finished = True
+            try:
+                async with asyncio.timeout(limit):
+                    await scenario.run(clk)
+            except TimeoutError:
+                finished = False
+            finally:
+                physics.cancel()
+            wall_s = time.perf_counter() - wall0
+            _finish_progress(progress, task_id, wall_s, not finished)
+            summary = scenario.summary()
+            if scenario.finished_at is not None:
+                summary["mission_time_s"] = scenario.finished_at - start
+            return RunReport(
+                scenario=cls.name,
+                seed=seed,
+                mode="wall",
+                success=scenario.success(),
+                finished=finished,
+                sim_time_s=wall_s,
+                wall_time_s=wall_s,
+                achieved_rtf=1.0,
+                summary=summary,
+                loops=_loop_reports(clk),
+                final_state=scenario.state_vector(),
+                stamps=diagnostics_report(),
+                until_s=limit,
+                setup_output=output,
+            )
+
+        wall0 = time.perf_counter()
+        return evclock_run(main(), use_sim_time=False)
+    finally:
+        p.disconnect(cid)
