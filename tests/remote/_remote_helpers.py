@@ -10,7 +10,7 @@ import textwrap
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 #: Wall seconds any single process wait may take: a guard against hangs, not a timing check.
 WAIT = 60.0
 

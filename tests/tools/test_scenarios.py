@@ -14,7 +14,7 @@ import evclock
 from evclock.tools._cli import app
 from evclock.tools._scenarios import configure, load_scenario, parameters, parse_param_values
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SHUTTLE = ROOT / "examples" / "shuttle_scenario.py"
 TIMEOUT = 120  # wall seconds: a guard against hangs, not a performance assertion
 runner = CliRunner()

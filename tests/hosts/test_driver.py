@@ -43,7 +43,7 @@ from evclock import (
 from evclock.hosts._driver import SimDriverClock
 
 T = TypeVar("T")
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SIM = evclock.SIM
 
 LOOPS: dict[str, Callable[[], asyncio.AbstractEventLoop]] = {

@@ -16,7 +16,7 @@ import evclock
 from evclock.tools._cli import app
 from evclock.tools._plot import PALETTE, RTF_COLOR
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
 runner = CliRunner()
 

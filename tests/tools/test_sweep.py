@@ -28,7 +28,7 @@ from evclock.tools._cli_sweep import SweepProgress
 from evclock.tools._plot import HISTOGRAM_COLOR
 from evclock.tools._sweep import SweepRow, parse_seeds, quantiles
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
 #: Wall seconds: a guard against hangs on a loaded machine, not a timing check; below the
 #: suite's per-test pytest-timeout (300 s), so that a hang fails its test with the child's

@@ -46,7 +46,7 @@ from evclock.sources import PyBulletTimeSource, exact_time_step
 
 NS = 1_000_000_000
 STEP_NS = Fraction(NS, 240)  # PyBullet's default time step, exactly
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def raises_exactly(error: type[BaseException], message: str) -> Any:

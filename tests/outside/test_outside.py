@@ -919,7 +919,7 @@ def test_driver_waits_from_another_thread_raise_wrong_thread_error() -> None:
 
 
 def test_outside_world_example_prints_exact_sim_times() -> None:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     proc = subprocess.run(
         [PY, os.path.join(root, "examples", "outside_world.py")],
         capture_output=True,

@@ -645,7 +645,7 @@ def test_the_page_arrives_with_the_state_embedded(client: httpx.Client) -> None:
 
 # ------------------------------------------------ from any working directory
 
-DASHBOARD = Path(__file__).resolve().parents[1] / "examples" / "dashboard"
+DASHBOARD = Path(__file__).resolve().parents[2] / "examples" / "dashboard"
 
 
 def test_the_dashboard_runs_from_any_working_directory(tmp_path: Path) -> None:
@@ -730,7 +730,7 @@ def test_without_pillow_the_error_names_the_extra() -> None:
         "import sys; sys.modules['PIL'] = None\n"  # as if Pillow were not installed
         "import examples.dashboard\n"
     )
-    root = Path(__file__).resolve().parents[1]
+    root = Path(__file__).resolve().parents[2]
     result = subprocess.run(
         [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, timeout=WAIT
     )

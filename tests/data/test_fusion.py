@@ -13,7 +13,7 @@ from typer.testing import CliRunner
 
 from evclock.tools._cli import app, run_scenario
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 TIMEOUT = 60  # seconds; a guard against hangs, not a performance assertion
 
 EXAMPLE_OUTPUT = """\

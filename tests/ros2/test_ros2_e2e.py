@@ -21,7 +21,7 @@ from typer.testing import CliRunner
 from evclock.ros2 import CLOCK_TYPE_HASH, decode_clock
 from evclock.tools._cli import app
 
-ROOT = Path(__file__).resolve().parent.parent
+ROOT = Path(__file__).resolve().parents[2]
 EXAMPLES = ROOT / "examples"
 TIMEOUT = 60  # wall seconds: a guard against hangs, not a performance assertion
 STEP_NS = 12_500_000 / 3  # a 240 Hz physics step, exactly
