@@ -85,8 +85,9 @@ class PhysicsError(EvClockError, RuntimeError):
     """The physics engine cannot be used: a disconnected client, a bad time step."""
 
 
-class SimTimeLimitError(EvClockError):
-    """A run or a test exceeded its sim-time limit."""
+class SimTimeLimitError(EvClockError, TimeoutError):
+    """A run, a test or a wait exceeded its sim-time limit: ``run(until=...)``, a test's
+    ``sim_timeout``, ``SteppingTimeSource.wait_until(timeout=...)``."""
 
 
 class TimeLookupError(EvClockError, LookupError):
@@ -95,6 +96,24 @@ class TimeLookupError(EvClockError, LookupError):
 
 class ExtrapolationError(TimeLookupError):
     """A buffer lookup lies further outside the kept samples than ``max_extrapolation``."""
+
+
+class SourceInUseError(EvClockError, RuntimeError):
+    """A time source that already drives one loop (or SimDriver) was given to another; create
+    one time source per loop."""
+
+
+class PluginOptionError(EvClockError, ValueError):
+    """An option of evclock's pytest plugin is invalid: an argument of
+    ``@pytest.mark.evclock(...)``, an ``--evclock-*`` command-line option or an ``evclock_*``
+    ini value."""
+
+
+class PluginUsageError(EvClockError, RuntimeError):
+    """evclock's pytest plugin cannot run a test as it is set up: an evclock fixture requested
+    outside an evclock test, a test on a loop that is not evclock's (another loop factory, a
+    plain anyio backend), ``evclock_pybullet`` on a shared or already created loop, an async
+    generator fixture that yields twice."""
 
 
 class ScenarioError(EvClockError, RuntimeError):
@@ -127,7 +146,8 @@ class JoinRefusedError(RemoteClockError):
 
 
 class ParticipantLostError(RemoteClockError):
-    """A participant the simulation depends on died, stopped answering or never joined.
+    """A participant the simulation depends on died, stopped answering, never joined, or left
+    without handing over what it owed (the scenario controllers' report).
 
     ``name`` is the participant's name.
     """

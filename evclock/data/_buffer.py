@@ -32,7 +32,14 @@ from evclock._errors import (
     InvalidTypeError,
     TimeLookupError,
 )
-from evclock.time._time import ClockType, Duration, Time, to_nonnegative_nanoseconds
+from evclock.time._time import (
+    ClockType,
+    Duration,
+    Time,
+    new_duration,
+    new_time,
+    to_nonnegative_nanoseconds,
+)
 
 __all__ = ["Interpolation", "TimeBuffer"]
 
@@ -72,7 +79,7 @@ class TimeBuffer:
             )
         self.capacity = capacity
         self.interpolation: Interpolation = interpolation
-        self.max_extrapolation = Duration._from_ns(
+        self.max_extrapolation = new_duration(
             to_nonnegative_nanoseconds(max_extrapolation, "max_extrapolation")
         )
         self.name = name
@@ -119,7 +126,7 @@ class TimeBuffer:
 
     def _time(self, ns: int) -> Time:
         assert self._clock_type is not None
-        return Time._from_ns(ns, self._clock_type)
+        return new_time(ns, self._clock_type)
 
     def stamps(self) -> npt.NDArray[np.int64]:
         """The kept stamps in nanoseconds, oldest first (a read-only view)."""

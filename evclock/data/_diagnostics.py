@@ -30,7 +30,7 @@ from typing import Any, Literal
 from evclock._errors import InvalidArgumentError, InvalidTypeError
 from evclock.data._stamped import StampClock, check_stamp_clock
 from evclock.hosts._current import clock as running_clock
-from evclock.time._time import Duration, Time, to_nonnegative_nanoseconds
+from evclock.time._time import Duration, Time, new_duration, to_nonnegative_nanoseconds
 
 __all__ = [
     "StampDiagnostics",
@@ -80,7 +80,7 @@ class StreamAgeStats:
 
     def mean(self) -> Duration:
         """Mean age (zero before the first message)."""
-        return Duration._from_ns(self.sum_ns // self.count if self.count else 0)
+        return new_duration(self.sum_ns // self.count if self.count else 0)
 
 
 class StampDiagnostics:
@@ -269,7 +269,7 @@ class StampDiagnostics:
         if not (isinstance(q, int | float) and 0 <= q <= 100):
             raise InvalidArgumentError(f"q must be a number in [0, 100], got {q!r}")
         ordered = sorted(recent)
-        return Duration._from_ns(ordered[math.ceil(q / 100 * (len(ordered) - 1))])
+        return new_duration(ordered[math.ceil(q / 100 * (len(ordered) - 1))])
 
     def as_dict(self) -> dict[str, Any]:
         """Plain numbers (seconds) for reports and JSON.

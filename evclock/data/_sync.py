@@ -23,7 +23,7 @@ from evclock.data._diagnostics import StampDiagnostics
 from evclock.data._policies import ApproximatePolicy, ExactPolicy, Group, SlopPolicy
 from evclock.data._stamped import StampClock, StampKey, check_stamp_clock, stamp_of
 from evclock.hosts._current import clock as running_clock
-from evclock.time._time import Duration, to_nonnegative_nanoseconds
+from evclock.time._time import Duration, new_duration, to_nonnegative_nanoseconds
 
 __all__ = ["ApproximateTimeSynchronizer", "TimeSynchronizer"]
 
@@ -431,4 +431,4 @@ class ApproximateTimeSynchronizer(_Synchronizer):
     @property
     def slop(self) -> Duration | None:
         """The slop of ROS Python's matching, or None for the C++ policy."""
-        return None if self._slop_ns is None else Duration._from_ns(self._slop_ns)
+        return None if self._slop_ns is None else new_duration(self._slop_ns)

@@ -41,6 +41,13 @@ from collections.abc import Callable, Iterator
 from types import TracebackType
 from typing import Any, Final
 
+from evclock._cpython import (
+    UNKNOWN,
+    loop_ready_queue,
+    loop_thread_id,
+    running_loop,
+    task_waiter,
+)
 from evclock._errors import (
     ClockJumpedError,
     InvalidArgumentError,
@@ -55,8 +62,9 @@ from evclock.hosts._loop import SimEventLoop
 from evclock.kernel._clock import Clock, SimClock
 from evclock.kernel._core import DUE, HELD, MOVED, PACING, WAIT_SOURCE, SimCore
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, PacingControls
-from evclock.sources import TimeSource, VirtualTimeSource
-from evclock.time._time import MAX_TIME_NS, SIM, Duration, Time, to_sim_time_ns
+from evclock.kernel._source import TimeSource
+from evclock.kernel._virtual import VirtualTimeSource
+from evclock.time._time import MAX_TIME_NS, SIM, Duration, Time, new_time, to_sim_time_ns
 
 #: Default bound of loop iterations the driver yields, after waking the tasks due at one sim
 #: time, for that work to settle before it advances sim time anyway.
@@ -64,7 +72,6 @@ DEFAULT_MAX_SETTLE_YIELDS: Final = 100
 #: Consecutive quiet checks needed when the loop's ready queue cannot be read (uvloop).
 _QUIET_CHECKS_BY_TASKS: Final = 3
 _NEW, _RUNNING, _STOPPED = "new", "running", "stopped"
-_UNKNOWN: Final[Any] = object()
 #: ``notify_before`` while the driver waits for nothing in particular: any new deadline counts.
 _ANY_DEADLINE: Final = MAX_TIME_NS + 1
 #: While an external source waits for the outside, ask it again this often (wall seconds).
@@ -129,10 +136,10 @@ class _WakeProbe:
             for task in asyncio.all_tasks(loop):
                 if task is me:
                     continue
-                waiter = getattr(task, "_fut_waiter", _UNKNOWN)
+                waiter = task_waiter(task)
                 if waiter is None:
                     return True
-                if waiter is not _UNKNOWN:
+                if waiter is not UNKNOWN:
                     futures.append(waiter)
         return any(f.done() for f in futures)
 
@@ -299,7 +306,7 @@ class SimDriver(PacingControls):
 
     def now(self) -> Time:
         """Current sim time."""
-        return Time._from_ns(self._core.now_ns, SIM)
+        return new_time(self._core.now_ns, SIM)
 
     @property
     def running(self) -> bool:
@@ -367,8 +374,7 @@ class SimDriver(PacingControls):
         source.attach(self._core)  # the driver's kernel is the source's host
         self._core.now_ns = source.now_ns  # the source may have moved since (a former driver)
         self._loop = loop
-        ready = getattr(loop, "_ready", None)
-        self._ready_queue = ready if isinstance(ready, collections.deque) else None
+        self._ready_queue = loop_ready_queue(loop)
         self._previous_clock = previous
         attach_clock(loop, self._clock)
         self._state = _RUNNING
@@ -457,7 +463,7 @@ class SimDriver(PacingControls):
         loop = self._loop
         if self._state is not _RUNNING or loop is None:
             return
-        if asyncio.events._get_running_loop() is not loop:
+        if running_loop() is not loop:
             raise WrongThreadError(
                 f"SimDriver.{what} must be awaited on the event loop the driver runs on, "
                 "but it was called from another thread (or loop); hand it to the driver's "
@@ -490,12 +496,12 @@ class SimDriver(PacingControls):
 
     def _on_host_thread(self) -> bool:
         loop = self._loop
-        thread_id = getattr(loop, "_thread_id", _UNKNOWN)  # BaseEventLoop's running thread
-        if thread_id is not _UNKNOWN:
+        thread_id = loop_thread_id(loop)
+        if thread_id is not UNKNOWN:
             return thread_id is None or thread_id == threading.get_ident()
         # Loops that do not say which thread runs them (uvloop): the caller is on the
         # driver's loop exactly when that loop is running in the caller's thread.
-        return asyncio.events._get_running_loop() is loop
+        return running_loop() is loop
 
     def _call_on_host(self, what: str, reaction: Callable[[], None]) -> None:
         # The same mechanism as SimEventLoop's: the pacer changed in the calling thread;
@@ -557,7 +563,7 @@ class SimDriver(PacingControls):
     def _new_future(self) -> asyncio.Future[None]:
         """A future for a sim-time wait (every wait on this driver's clock starts here)."""
         loop = self._loop
-        if self._state is not _RUNNING or asyncio.events._get_running_loop() is not loop:
+        if self._state is not _RUNNING or running_loop() is not loop:
             return self._wait_refused()
         assert loop is not None
         return loop.create_future()
@@ -598,7 +604,7 @@ class SimDriver(PacingControls):
 
     def _wait_refused(self) -> asyncio.Future[None]:
         loop = self._loop
-        if self._draining and loop is not None and asyncio.events._get_running_loop() is loop:
+        if self._draining and loop is not None and running_loop() is loop:
             fut: asyncio.Future[None] = loop.create_future()
             fut.cancel()
             return fut
@@ -606,7 +612,7 @@ class SimDriver(PacingControls):
         raise AssertionError("unreachable")
 
     def _check_can_wait(self) -> None:
-        if self._state is _RUNNING and asyncio.events._get_running_loop() is self._loop:
+        if self._state is _RUNNING and running_loop() is self._loop:
             return
         if self._state is _STOPPED:
             raise LoopClosedError(self._stopped_message())
@@ -657,8 +663,8 @@ class SimDriver(PacingControls):
         for task in asyncio.all_tasks(loop):
             if task is me:
                 continue
-            waiter = getattr(task, "_fut_waiter", _UNKNOWN)
-            if waiter is None or (waiter is not _UNKNOWN and waiter.done()):
+            waiter = task_waiter(task)
+            if waiter is None or (waiter is not UNKNOWN and waiter.done()):
                 return False
         return True
 
@@ -729,7 +735,7 @@ class SimDriver(PacingControls):
             ),
         )
         source = self._source
-        if source._host is self._core:
+        if source.host is self._core:
             source.detach()  # the source keeps its time for a next host
         loop = self._loop
         assert loop is not None

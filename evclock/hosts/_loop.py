@@ -30,10 +30,18 @@ import select
 import selectors
 import threading
 import time
-from asyncio import base_events, events
+from asyncio import events
 from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
+from evclock._cpython import (
+    asyncio_logger,
+    fd_to_key,
+    format_handle,
+    running_loop,
+    thread_limbo,
+    thread_registry,
+)
 from evclock._errors import (
     DeadlockError,
     InvalidArgumentError,
@@ -52,7 +60,8 @@ from evclock.outside._threads import (
     internal_count,
 )
 from evclock.outside._work import EXACT, OutsideWork
-from evclock.sources import TimeSource, VirtualTimeSource
+from evclock.kernel._source import TimeSource
+from evclock.kernel._virtual import VirtualTimeSource
 from evclock.time._time import MAX_TIME_NS, real_number
 
 if TYPE_CHECKING:
@@ -62,11 +71,11 @@ _T = TypeVar("_T")
 _Ts = TypeVarTuple("_Ts")
 
 _Future = asyncio.Future
-_running_loop = asyncio._get_running_loop
+_running_loop = running_loop
 _read_debug = operator.attrgetter("_debug")
 # Read on every advance: threading.active_count() would take a lock each time.
-_thread_registry: dict[int, threading.Thread] = threading._active  # type: ignore[attr-defined]
-_thread_limbo: dict[threading.Thread, threading.Thread] = threading._limbo  # type: ignore[attr-defined]
+_thread_registry = thread_registry
+_thread_limbo = thread_limbo
 
 #: Default wall-time limit for sim time being held by outside work or an I/O wait.
 DEFAULT_STALL_TIMEOUT = 60.0
@@ -232,7 +241,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # Registered file descriptors, read on every iteration: the selector's own dict when
         # it exposes one (all stdlib selectors do), else its public mapping view. The
         # self-pipe is always registered, so "real I/O" means more than one entry.
-        self._io_map: Any = getattr(self._selector, "_fd_to_key", None) or self._selector.get_map()
+        self._io_map: Any = fd_to_key(self._selector)
         # OUTSIDE HOOK: epoll does not run a tty's pending input work (_hand_over_tty_input).
         self._epoll = isinstance(self._selector, getattr(selectors, "EpollSelector", ()))
         # asyncio private: BaseSelectorEventLoop._ssock, the self-pipe's read end (a socket,
@@ -323,7 +332,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             when_ns = core.now_ns + round(delay * 1e9)
         except (TypeError, ValueError, OverflowError):  # None, NaN, infinite, not a number
             if delay is None:
-                raise TypeError("delay must not be None") from None
+                raise InvalidTypeError("delay must not be None") from None
             return self.call_at(self.time() + delay, callback, *args, context=context)
         if self._closed:
             self._check_closed()
@@ -347,10 +356,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             timer._scheduled = False  # beyond sim time's range: never (as SimCore.call_at)
         else:
             timer._scheduled = True
-            if core._at.setdefault(when_ns, timer) is timer:  # the kernel's (SimCore.call_at)
-                _heappush(core._heap, when_ns)
+            if core.at.setdefault(when_ns, timer) is timer:  # SimCore.schedule, inlined
+                _heappush(core.heap, when_ns)
             else:
-                core._add(when_ns, timer)
+                core.schedule(when_ns, timer)
         return timer
 
     def call_at(
@@ -361,7 +370,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         context: contextvars.Context | None = None,
     ) -> asyncio.TimerHandle:
         if when is None:
-            raise TypeError("when cannot be None")
+            raise InvalidTypeError("when cannot be None")
         if when != when or when == -math.inf:
             raise InvalidArgumentError(f"call_at() needs a finite time, got {when!r}")
         if self._closed:
@@ -375,18 +384,18 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # beyond sim time's range, as on stock asyncio a timer that never fires nor moves time.
         return timer
 
-    def _call_at_ns(
+    def call_at_ns(
         self,
         when_ns: int,
-        when: float,
-        callback: Callable[..., object],
-        args: tuple[Any, ...],
-        context: Any,
+        callback: Callable[[Unpack[_Ts]], object],
+        *args: *_Ts,
+        context: contextvars.Context | None = None,
     ) -> asyncio.TimerHandle:
-        """call_at() at exact integer nanoseconds (``when`` is its float seconds)."""
+        """:meth:`call_at` at an exact sim time in integer nanoseconds (no float round
+        trip): for evclock's own timers that must land on an exact instant."""
         if self._closed:
             self._check_closed()
-        timer = _SimTimer(when, callback, args, self, context)
+        timer = _SimTimer(when_ns / 1_000_000_000, callback, args, self, context)
         if self._debug:
             self._check_debug(timer, callback, "call_at")
         self._core.call_at(when_ns, timer)
@@ -481,11 +490,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             dt = time.monotonic() - t0
             if dt >= self.slow_callback_duration:
                 # asyncio's own logger and message (wall seconds), as tools filter on both.
-                base_events.logger.warning(  # type: ignore[attr-defined]
-                    "Executing %s took %.3f seconds",
-                    base_events._format_handle(handle),  # type: ignore[attr-defined]
-                    dt,
-                )
+                asyncio_logger.warning("Executing %s took %.3f seconds", format_handle(handle), dt)
         finally:
             self._current_handle = None
             # Drop the handle with this frame, as asyncio's _run_once does ("handle = None"):
@@ -555,9 +560,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             return self._io_map.values()
         return [key for key in self._io_map.values() if key.fd not in accounted]
 
-    def _account_fd(self, fd: int, accounted: bool) -> None:
-        """EXTERNAL-SOURCE HOOK: ``fd``'s owner accounts for its traffic exactly (it holds
-        sim time itself while that traffic matters): the loop infers nothing from it."""
+    def account_fd(self, fd: int, accounted: bool) -> None:
+        """Declare that ``fd``'s owner accounts for its traffic exactly (``accounted``), or
+        no longer does: the owner holds sim time itself while that traffic matters (the
+        clock server's connections), so the loop infers nothing from the fd's unread bytes.
+        """
         if accounted:
             self._accounted_fds.add(fd)
         else:
@@ -607,7 +614,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         are polled once before time moves: exact, and what was written is read now.
 
         Only descriptors that can be a terminal are polled: not the self-pipe, nor the
-        sockets whose owner accounts for their traffic exactly (``_account_fd``: a clock
+        sockets whose owner accounts for their traffic exactly (``account_fd``: a clock
         server's connections and listener); with none left, no system call at all.
 
         This runs before every advance with I/O registered, so the poll object is kept and
@@ -636,6 +643,16 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """
         outside = self._outside  # OUTSIDE HOOK
         return outside.can_wake() or self._poll_io(_DEADLOCK_CONFIRM) or outside.can_wake()
+
+    def would_deadlock(self) -> bool:
+        """Whether, right now, nothing could ever wake a task: nothing is ready, nothing
+        outside the loop is in flight, no I/O or signal handler is registered, nothing is
+        scheduled and the source cannot move on its own. A quick test without waiting (the
+        pytest plugin's guard asks it); the loop itself confirms a deadlock before raising
+        :class:`DeadlockError`."""
+        if self._ready or self._outside.active or len(self._io_map) > 1:
+            return False
+        return not self._source.free_running and not self._core.has_pending()
 
     def interrupt_wait(self) -> None:
         """Nothing to do: the loop's waits are I/O waits, and whatever calls this runs in
@@ -764,18 +781,15 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         with self.hold_time():
             await super().shutdown_default_executor(*args, **kwargs)
 
-    @property
-    def _holds(self) -> int:
-        """How many exactly-counted things outside the loop are in flight (read by the
-        pytest plugin's guard)."""
-        return self._outside.active
-
-    def _add_hold(self) -> None:
-        """One explicit hold (``hold_time``; the cross-process clock server holds too)."""
+    def add_hold(self) -> None:
+        """Hold sim time until a matching :meth:`release_hold` (thread-safe; counted, so
+        holds nest). :meth:`hold_time` is the block form; the clock server holds this way
+        while a participant's answer is in flight."""
         self._outside.add_hold()
 
-    def _release_hold_cb(self, _fut: object) -> None:
-        """Release one :meth:`_add_hold` (a done-callback signature)."""
+    def release_hold(self, _fut: object = None) -> None:
+        """Release one :meth:`add_hold` (thread-safe). It takes an ignored argument so that
+        it can be a future's done-callback."""
         self._outside.release_hold()
 
     @contextlib.contextmanager
@@ -788,11 +802,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             with loop.hold_time():
                 await wait_for_reply_from_subprocess()
         """
-        self._add_hold()
+        self.add_hold()
         try:
             yield
         finally:
-            self._release_hold_cb(None)
+            self.release_hold()
 
     def _update_fast_path(self) -> None:
         # Without pacing the loop may advance straight to the next deadline, unless the

@@ -19,7 +19,8 @@ from evclock.hosts._current import attach_clock
 from evclock.hosts._loop import DEFAULT_STALL_TIMEOUT, SimEventLoop, check_stall_timeout
 from evclock.kernel._clock import WallClock
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, check_max_lag, check_rtf
-from evclock.sources import TimeSource, VirtualTimeSource
+from evclock.kernel._source import TimeSource
+from evclock.kernel._virtual import VirtualTimeSource
 from evclock.time._time import STEADY, SYSTEM, ClockType, Duration, Time, to_sim_time_ns
 
 _T = TypeVar("_T")
@@ -140,7 +141,7 @@ async def _limited(main: Coroutine[Any, Any, _T], until_ns: int) -> _T:
         expired = True
         task.cancel("evclock: the until limit was reached")
 
-    handle = loop._call_at_ns(until_ns, until_ns / 1e9, expire, (), None)
+    handle = loop.call_at_ns(until_ns, expire)
     try:
         return await main
     except asyncio.CancelledError:

@@ -11,6 +11,8 @@ from collections.abc import Collection, Mapping
 from types import FrameType
 from typing import Any
 
+from evclock._cpython import UNKNOWN, task_waiter
+
 
 def coroutine_frames(coro: object) -> list[FrameType]:
     """The frames of a suspended coroutine's await chain, outermost first.
@@ -47,8 +49,9 @@ def describe_task(
     )
     if not where:
         where = "running" if getattr(coro, "cr_running", False) else repr(coro)
-    waiter = getattr(task, "_fut_waiter", None)
-    waits_on = f", waiting on {_short(waiter)}" if waiter is not None else ""
+    waiter = task_waiter(task)
+    known = waiter is not None and waiter is not UNKNOWN
+    waits_on = f", waiting on {_short(waiter)}" if known else ""
     name = task.get_name() if label is None else f"{task.get_name()} ({label})"
     return f"{name}: {where}{waits_on}"
 

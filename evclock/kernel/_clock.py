@@ -13,7 +13,6 @@ from evclock._errors import (
     InvalidArgumentError,
     InvalidTypeError,
 )
-from evclock.kernel import _precise
 from evclock.kernel._core import clock_sleep, clock_sleep_until
 from evclock.kernel._jumps import JumpCallback, JumpHandle, JumpThreshold
 from evclock.kernel._rate import Policy, Rate, Timer, TimerCallback
@@ -24,6 +23,8 @@ from evclock.time._time import (
     ClockType,
     Duration,
     Time,
+    new_duration,
+    new_time,
     sleep_duration_ns,
     to_nanoseconds,
 )
@@ -53,7 +54,7 @@ class Clock(abc.ABC):
 
     def now(self) -> Time:
         """Current time of this clock."""
-        return Time._from_ns(self.now_ns(), self.clock_type)
+        return new_time(self.now_ns(), self.clock_type)
 
     @abc.abstractmethod
     def sleep(self, duration: float | Duration) -> Awaitable[None]:
@@ -63,7 +64,7 @@ class Clock(abc.ABC):
         """
 
     @abc.abstractmethod
-    def _sleep_until_ns(self, when_ns: int) -> Awaitable[None]:
+    def sleep_until_ns(self, when_ns: int) -> Awaitable[None]:
         """Wait until this clock reads at least ``when_ns`` (no validation)."""
 
     def sleep_until(self, when: Time) -> Awaitable[None]:
@@ -78,7 +79,7 @@ class Clock(abc.ABC):
                 f"sleep_until() got a {when.clock_type.value} time but this is a "
                 f"{self.clock_type.value} clock; compute deadlines from this clock's now()"
             )
-        return self._sleep_until_ns(when.nanoseconds)
+        return self.sleep_until_ns(when.nanoseconds)
 
     def rate(self, hz: float, *, policy: Policy = "skip", name: str | None = None) -> Rate:
         """A drift-free rate loop: ``async for tick in clock.rate(100): ...``; see :class:`Rate`."""
@@ -153,7 +154,8 @@ class SimClock(Clock):
 
     def __init__(self, core: SimCore, host: PacingControls) -> None:
         super().__init__()
-        self._core = core
+        #: The kernel whose time this is (the sleeps read its schedule directly).
+        self.core = core
         self._host = host
 
     @property
@@ -170,20 +172,20 @@ class SimClock(Clock):
         return host
 
     def now_ns(self) -> int:
-        return self._core.now_ns
+        return self.core.now_ns
 
     def now(self) -> Time:
-        return Time._from_ns(self._core.now_ns, SIM)
+        return new_time(self.core.now_ns, SIM)
 
     sleep = clock_sleep  # the kernel's: every controller's hot path, in one frame
 
-    _sleep_until_ns = clock_sleep_until  # the kernel's: rates' and timers' hot path
+    sleep_until_ns = clock_sleep_until  # the kernel's: rates' and timers' hot path
 
     def _jump_registry(self) -> list[JumpHandle]:
-        return self._core.jump_handlers
+        return self.core.jump_handlers
 
     def __repr__(self) -> str:
-        return f"<SimClock now={self.now()} source={self._core.source.describe()}>"
+        return f"<SimClock now={self.now()} source={self.core.source.describe()}>"
 
 
 class WallClock(Clock):
@@ -229,7 +231,7 @@ class WallClock(Clock):
         clock_type: ClockType = STEADY,
         *,
         precise: bool = True,
-        spin_margin: float | Duration = _precise.DEFAULT_SPIN_MARGIN_NS / 1e9,
+        spin_margin: float | Duration = 100e-6,
         timer_slack: float | Duration | None = None,
     ) -> None:
         if clock_type not in (STEADY, SYSTEM):
@@ -242,6 +244,10 @@ class WallClock(Clock):
         margin_ns = to_nanoseconds(spin_margin, "spin_margin")
         if margin_ns < 0:
             raise InvalidArgumentError(f"spin_margin must not be negative, got {spin_margin!r}")
+        # The precise waits (ctypes, timerfd) load with the first wall clock, not with
+        # `import evclock`.
+        from evclock.kernel import _precise
+
         slack: _precise.TimerSlack | None = None
         if timer_slack is not None:
             slack_ns = to_nanoseconds(timer_slack, "timer_slack")
@@ -255,6 +261,7 @@ class WallClock(Clock):
             _precise.CLOCK_MONOTONIC if clock_type is STEADY else _precise.CLOCK_REALTIME
         )
         self._precise = precise
+        self._waits = _precise
         self._spin_margin_ns = margin_ns
         self._slack = slack
 
@@ -266,7 +273,7 @@ class WallClock(Clock):
     @property
     def spin_margin(self) -> Duration:
         """How long before a deadline a precise wait starts yielding instead of sleeping."""
-        return Duration._from_ns(self._spin_margin_ns)
+        return new_duration(self._spin_margin_ns)
 
     def now_ns(self) -> int:
         return self._read()
@@ -277,20 +284,21 @@ class WallClock(Clock):
             await asyncio.sleep(ns / 1e9)
             return
         # A relative sleep is measured on the monotonic clock, even on a SYSTEM clock.
-        await _precise.sleep_until_ns(
+        waits = self._waits
+        await waits.sleep_until_ns(
             time.monotonic_ns() + ns,
             time.monotonic_ns,
-            _precise.CLOCK_MONOTONIC,
+            waits.CLOCK_MONOTONIC,
             self._spin_margin_ns,
             self._slack,
         )
 
-    async def _sleep_until_ns(self, when_ns: int) -> None:
+    async def sleep_until_ns(self, when_ns: int) -> None:
         if not self._precise:
             delay = when_ns - self._read()
             await asyncio.sleep(delay / 1e9 if delay > 0 else 0)
             return
-        await _precise.sleep_until_ns(
+        await self._waits.sleep_until_ns(
             when_ns, self._read, self._clockid, self._spin_margin_ns, self._slack
         )
 

@@ -36,10 +36,10 @@ import heapq
 import itertools
 import operator
 import time
-from asyncio import futures
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
+from evclock._cpython import SET_RESULT_UNLESS_CANCELLED, running_loop
 from evclock._errors import ClockJumpedError, InvalidArgumentError
 from evclock.kernel._jumps import JumpHandle, TimeJump
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, Pacer
@@ -49,8 +49,9 @@ from evclock.time._time import (
     MAX_TIME_NS,
     SIM,
     Duration,
-    Time,
+    duration_ns,
     format_time_range_error,
+    new_time,
     sleep_duration_ns,
 )
 
@@ -79,13 +80,13 @@ class _Bucket(list[Any]):
 
 
 _Future = asyncio.Future
-# asyncio's own lookup of the running loop (exported, underscored): a future created with no
-# loop= on the running loop is bound to it, found in C.
-_running_loop = asyncio._get_running_loop
+# A future created with no loop= on the running loop is bound to it, found in C.
+_running_loop = running_loop
 # asyncio.sleep() schedules this function through call_later(); the kernel recognises it to
-# resolve the sleep's future exactly as the handle would (asyncio private, no public name).
-_SET_RESULT_UNLESS_CANCELLED = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
+# resolve the sleep's future exactly as the handle would.
+_SET_RESULT_UNLESS_CANCELLED = SET_RESULT_UNLESS_CANCELLED
 _deadline = operator.itemgetter(0)
+_duration_ns = duration_ns
 _heappush = heapq.heappush
 _heappop = heapq.heappop
 #: Purge cancelled timers from the heap once they are this many and half of it.
@@ -101,11 +102,9 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
     """
     if type(duration) is float and 0.0 <= duration < 1e9:
         ns = round(duration * 1e9)
-    elif type(duration) is Duration and duration._ns >= 0:
-        ns = duration._ns
-    else:
+    elif type(duration) is not Duration or (ns := _duration_ns(duration)) < 0:
         ns = sleep_duration_ns(duration)
-    core = clock._core
+    core = clock.core
     when = core.now_ns + ns
     if when > MAX_TIME_NS:
         raise InvalidArgumentError(format_time_range_error("the wait", when))
@@ -115,19 +114,19 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
         fut: asyncio.Future[None] = _Future()
     else:
         fut = _Future(loop=loop) if loop is not None else core.future_factory()
-    if core._at.setdefault(when, fut) is fut:
-        _heappush(core._heap, when)
+    if core.at.setdefault(when, fut) is fut:
+        _heappush(core.heap, when)
     else:
-        core._add(when, fut)
+        core.schedule(when, fut)
     if when < core.notify_before:
         core.host.interrupt_wait()
     return fut
 
 
 def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
-    """Wait until sim time reaches ``when_ns`` (at least now): ``SimClock._sleep_until_ns``,
+    """Wait until sim time reaches ``when_ns`` (at least now): ``SimClock.sleep_until_ns``,
     the hot path of rates and timers."""
-    core = clock._core
+    core = clock.core
     now = core.now_ns
     if when_ns < now:
         when_ns = now
@@ -139,10 +138,10 @@ def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
         fut: asyncio.Future[None] = _Future()
     else:
         fut = _Future(loop=loop) if loop is not None else core.future_factory()
-    if core._at.setdefault(when_ns, fut) is fut:
-        _heappush(core._heap, when_ns)
+    if core.at.setdefault(when_ns, fut) is fut:
+        _heappush(core.heap, when_ns)
     else:
-        core._add(when_ns, fut)
+        core.schedule(when_ns, fut)
     if when_ns < core.notify_before:
         core.host.interrupt_wait()
     return fut
@@ -210,9 +209,13 @@ class SimCore:
         #: The host is told (:meth:`CoreHost.interrupt_wait`) of deadlines before this.
         self.notify_before: int = -1
         self.jump_handlers: list[JumpHandle] = []
-        #: Distinct deadlines (a heap) and what is due at each (see the module).
-        self._heap: list[int] = []
-        self._at: dict[int, Any] = {}
+        #: The schedule (see the module): ``heap`` holds each distinct deadline once, ``at``
+        #: maps it to what is due then (one entry, or a ``_Bucket`` of several in FIFO
+        #: order). Hot paths outside this class (``clock_sleep``, ``SimEventLoop.call_later``)
+        #: insert inline, as :meth:`schedule` does: ``if at.setdefault(when, e) is e:
+        #: heappush(heap, when)``, else ``schedule(when, e)``. Nothing else writes them.
+        self.heap: list[int] = []
+        self.at: dict[int, Any] = {}
         self._settled: list[tuple[int, int, asyncio.Future[None]]] = []
         self._seq = itertools.count().__next__
         self._cancelled_timers = 0
@@ -236,18 +239,18 @@ class SimCore:
     def call_at(self, when_ns: int, timer: Any) -> None:
         """Schedule an asyncio ``TimerHandle`` at ``when_ns`` (beyond the time range: never)."""
         if when_ns <= MAX_TIME_NS:
-            if self._at.setdefault(when_ns, timer) is timer:
-                heapq.heappush(self._heap, when_ns)
+            if self.at.setdefault(when_ns, timer) is timer:
+                heapq.heappush(self.heap, when_ns)
             else:
-                self._add(when_ns, timer)
+                self.schedule(when_ns, timer)
             timer._scheduled = True
 
-    def _add(self, when_ns: int, entry: Any) -> None:
+    def schedule(self, when_ns: int, entry: Any) -> None:
         """Schedule ``entry`` at ``when_ns``, after what is due then already."""
-        at = self._at
+        at = self.at
         present = at.setdefault(when_ns, entry)
         if present is entry:
-            heapq.heappush(self._heap, when_ns)
+            heapq.heappush(self.heap, when_ns)
         elif type(present) is _Bucket:
             present.append(entry)
         else:
@@ -259,9 +262,20 @@ class SimCore:
 
     def stop_at(self, when_ns: int) -> None:
         """Make time stop exactly at ``when_ns`` on its way (step_until, run_until)."""
-        self._add(when_ns, _STOP)
+        self.schedule(when_ns, _STOP)
         if when_ns < self.notify_before:
             self.host.interrupt_wait()
+
+    def drop_stops(self) -> None:
+        """Remove every stop mark still ahead: the ``step_until`` that placed it ended
+        before its target (``pause()``, ``resume()``, a new ``step_until``), and a mark left
+        behind would stop time where nothing is due - a step spent on no wake-up."""
+        for entry in self.at.values():
+            if entry is _STOP or (type(entry) is _Bucket and any(one is _STOP for one in entry)):
+                break
+        else:
+            return
+        self._rebuild([(when, entry) for when, entry in self._entries() if entry is not _STOP])
 
     def wait_settled(self, when_ns: int) -> asyncio.Future[None]:
         """A future resolved at ``when_ns`` once the work due then has settled
@@ -274,8 +288,8 @@ class SimCore:
 
     def next_deadline(self) -> int | None:
         """The earliest live deadline, dropping cancelled entries at the head."""
-        heap = self._heap
-        at = self._at
+        heap = self.heap
+        at = self.at
         while heap and self._dead(at[heap[0]]):
             del at[heapq.heappop(heap)]
         if self._cancelled_timers > _PURGE_AT and self._cancelled_timers * 2 > len(heap):
@@ -321,9 +335,9 @@ class SimCore:
 
     def _entries(self) -> list[tuple[int, Any]]:
         """Every scheduled ``(when_ns, entry)``, in firing order."""
-        at = self._at
+        at = self.at
         out: list[tuple[int, Any]] = []
-        for when in sorted(self._heap):
+        for when in sorted(self.heap):
             entry = at[when]
             if type(entry) is _Bucket:
                 out.extend((when, one) for one in entry)
@@ -333,10 +347,10 @@ class SimCore:
 
     def _rebuild(self, entries: list[tuple[int, Any]]) -> None:
         """Schedule exactly ``entries`` (``(when_ns, entry)``, in firing order)."""
-        self._heap.clear()
-        self._at.clear()
+        self.heap.clear()
+        self.at.clear()
         for when, entry in entries:
-            self._add(when, entry)
+            self.schedule(when, entry)
 
     def _purge(self) -> None:
         keep = []
@@ -356,7 +370,7 @@ class SimCore:
     def take_due(self) -> list[Any] | None:
         """Pop every entry due at the current time (to :meth:`fire` after the ready
         callbacks, as asyncio does with its timers), or None."""
-        heap = self._heap
+        heap = self.heap
         now = self.now_ns
         if not heap or heap[0] > now:
             return None
@@ -364,8 +378,8 @@ class SimCore:
 
     def _pop_due(self, now: int, due: list[Any]) -> list[Any]:
         """Append the entries due at ``now`` to ``due``, in order."""
-        heap = self._heap
-        pop = self._at.pop
+        heap = self.heap
+        pop = self.at.pop
         while heap and heap[0] <= now:
             entry = pop(heapq.heappop(heap))
             if type(entry) is _Bucket:
@@ -426,7 +440,7 @@ class SimCore:
 
     def wake_due(self) -> bool:
         """Resolve every sleep due now through its future (hosts on a foreign loop)."""
-        heap = self._heap
+        heap = self.heap
         now = self.now_ns
         woke = False
         if heap and heap[0] <= now:
@@ -450,7 +464,7 @@ class SimCore:
 
     def due_now(self) -> bool:
         """Whether an entry of the main heap is due at the current time."""
-        heap = self._heap
+        heap = self.heap
         return bool(heap) and heap[0] <= self.now_ns
 
     def settled_due_now(self) -> bool:
@@ -494,8 +508,8 @@ class SimCore:
         Same order as :meth:`take_due` then :meth:`fire`; if the advance itself made work
         ready (a step hook), the host runs it first.
         """
-        heap = self._heap
-        at = self._at
+        heap = self.heap
+        at = self.at
         virtual = self._virtual
         # The common case first: one task waits alone at the next deadline (deadlines are
         # distinct), later than now, on the default source, on a clock.sleep future or on
@@ -524,7 +538,7 @@ class SimCore:
                         if fut is not entry:
                             entry._scheduled = True
                     else:
-                        virtual._now = self.now_ns = when
+                        virtual.now_ns = self.now_ns = when
                         _heappop(heap)
                         del at[when]
                         # wake the task here (as below; inlined in both, as the hot paths
@@ -561,7 +575,7 @@ class SimCore:
             if virtual is not None:
                 # VirtualTimeSource.advance(when, None), inlined: it moves exactly to any
                 # later target (the hot path's one call saved)
-                virtual._now = self.now_ns = now = when
+                virtual.now_ns = self.now_ns = now = when
             else:
                 now = self.now_ns = self.source.advance(when, None)
                 if ready or not heap:
@@ -643,7 +657,7 @@ class SimCore:
         remaining delay, stop marks ahead of the new time stay, pacing re-anchors, then
         post-jump handlers run.
         """
-        jump = TimeJump(Time._from_ns(before_ns, SIM), Time._from_ns(after_ns, SIM))
+        jump = TimeJump(new_time(before_ns, SIM), new_time(after_ns, SIM))
         handlers = [h for h in list(self.jump_handlers) if h.threshold.matches(jump)]
         for handler in handlers:
             if handler.pre is not None:
@@ -686,7 +700,7 @@ class SimCore:
         """The host stops for good: pending waits raise ``failure`` (or are cancelled);
         :meth:`wait_settled` waits raise ``failure`` or ``settled_error()``."""
         entries = self._entries()
-        self._heap, self._at = [], {}
+        self.heap, self.at = [], {}
         for _, obj in entries:
             if obj is _STOP or isinstance(obj, _TimerHandle) or obj.done():
                 continue

@@ -16,7 +16,7 @@ from evclock._errors import (
     LagError,
     PacingError,
 )
-from evclock.time._time import SIM, Time, real_number, whole_number
+from evclock.time._time import SIM, Time, new_time, real_number, whole_number
 
 if TYPE_CHECKING:
     from evclock.kernel._core import SimCore
@@ -281,6 +281,15 @@ class PacingControls:
         """Called on the host's thread after ``step_until(when)``: place the stop mark."""
         self._pacing_changed()
 
+    def _step_until_ended(self) -> None:
+        """After pause() or resume(), on the host's thread: they end a ``step_until``, so
+        its stop mark goes too (unless a newer step_until, from another thread, is on its
+        way: it drops the old marks when it places its own)."""
+        core = self._core
+        if core.pacer.run_until_ns is None:
+            core.drop_stops()
+        self._pacing_changed()
+
     def _react(self, what: str, reaction: Callable[[], None]) -> None:
         if self._on_host_thread():
             reaction()
@@ -319,13 +328,13 @@ class PacingControls:
         """Stop sim time from advancing; I/O keeps being served. Thread-safe."""
         self._require_running("pause()")
         self._core.pacer.pause()
-        self._react("pause()", self._pacing_changed)
+        self._react("pause()", self._step_until_ended)
 
     def resume(self) -> None:
         """Let sim time advance again at the requested rtf. Thread-safe."""
         self._require_running("resume()")
         self._core.pacer.resume()
-        self._react("resume()", self._pacing_changed)
+        self._react("resume()", self._step_until_ended)
 
     def step(self, count: int = 1) -> None:
         """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
@@ -355,18 +364,21 @@ class PacingControls:
         if when.nanoseconds <= self._core.now_ns:
             raise InvalidArgumentError(
                 f"step_until() target {when} is not after the current sim time "
-                f"{Time._from_ns(self._core.now_ns, SIM)}"
+                f"{new_time(self._core.now_ns, SIM)}"
             )
         when_ns = when.nanoseconds
         pacer = self._core.pacer
         on_host = self._on_host_thread()
         pacer.run_until(when_ns, mark_pending=not on_host)
         if on_host:
+            self._core.drop_stops()  # a step_until still on its way ends here
             self._stepping_until(when_ns)
             return
 
         def place_mark() -> None:
-            self._stepping_until(when_ns)
-            pacer.mark_placed(when_ns)
+            self._core.drop_stops()
+            if pacer.run_until_ns == when_ns:  # else ended (or replaced) on its way here
+                self._stepping_until(when_ns)
+                pacer.mark_placed(when_ns)
 
         self._call_on_host("step_until()", place_mark)

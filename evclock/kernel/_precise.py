@@ -44,10 +44,12 @@ import weakref
 from collections.abc import Callable
 from typing import Final
 
+from evclock._errors import InvalidArgumentError
+
 #: Waits longer than this go through the loop's own timer first, up to this close.
 COARSE_NS: Final = 5_000_000
 #: Default spin margin of :class:`evclock.WallClock` (see its docstring for the figures).
-DEFAULT_SPIN_MARGIN_NS: Final = 100_000
+DEFAULT_SPIN_MARGIN_NS: Final = 100_000  # WallClock(spin_margin=100e-6), its default
 
 CLOCK_REALTIME: Final = 0
 CLOCK_MONOTONIC: Final = 1
@@ -215,7 +217,9 @@ def set_timer_slack(ns: int) -> int | None:
     ``ns`` must be positive: 0 would mean "the thread's default slack" to the kernel.
     """
     if ns <= 0:
-        raise ValueError(f"timer slack must be a positive number of nanoseconds, got {ns!r}")
+        raise InvalidArgumentError(
+            f"timer slack must be a positive number of nanoseconds, got {ns!r}"
+        )
     previous = get_timer_slack()
     if previous is None or _libc is None:
         return None
@@ -236,7 +240,9 @@ class TimerSlack:
 
     def __init__(self, ns: int) -> None:
         if isinstance(ns, bool) or not isinstance(ns, int) or ns <= 0:
-            raise ValueError(f"timer slack must be a positive number of nanoseconds, got {ns!r}")
+            raise InvalidArgumentError(
+                f"timer slack must be a positive number of nanoseconds, got {ns!r}"
+            )
         self.ns = ns
         self._local = threading.local()
 

@@ -7,22 +7,30 @@ import collections
 import inspect
 import math
 from collections.abc import Awaitable, Callable
-from fractions import Fraction
 from typing import TYPE_CHECKING, Literal
 
-from evclock._errors import ClockJumpedError, InvalidArgumentError, InvalidTypeError
+from evclock._errors import (
+    ClockJumpedError,
+    InvalidArgumentError,
+    InvalidTypeError,
+    NotRunningError,
+)
 from evclock.time._time import (
     MAX_TIME_NS,
     ClockType,
     Duration,
     Time,
     format_time_range_error,
+    new_duration,
+    new_time,
     real_number,
     to_nanoseconds,
     whole_number,
 )
 
 if TYPE_CHECKING:
+    from fractions import Fraction
+
     from evclock.kernel._clock import Clock
 
 Policy = Literal["skip", "catch_up", "reset"]
@@ -32,6 +40,8 @@ _RECENT = 4096
 
 def _period_fraction(hz: object) -> Fraction:
     """The exact period in nanoseconds of a rate of ``hz`` (any real number but bool)."""
+    from fractions import Fraction  # at rate creation, off `import evclock`
+
     if isinstance(hz, Fraction):
         exact = hz
     elif (whole := whole_number(hz)) is not None:
@@ -54,6 +64,8 @@ def _period_fraction(hz: object) -> Fraction:
 
 def _format_hz(hz: object) -> str:
     """A rate for a default name: ``100``, ``0.5``, ``1/3``."""
+    from fractions import Fraction
+
     if isinstance(hz, Fraction):
         return str(hz)
     value = real_number(hz)
@@ -91,17 +103,17 @@ class Tick:
     @property
     def expected(self) -> Time:
         """The deadline this tick stands for."""
-        return Time._from_ns(self.expected_ns, self._clock_type)
+        return new_time(self.expected_ns, self._clock_type)
 
     @property
     def actual(self) -> Time:
         """When the tick was delivered."""
-        return Time._from_ns(self.actual_ns, self._clock_type)
+        return new_time(self.actual_ns, self._clock_type)
 
     @property
     def lateness(self) -> Duration:
         """``actual - expected`` (zero on an unloaded virtual clock)."""
-        return Duration._from_ns(self.actual_ns - self.expected_ns)
+        return new_duration(self.actual_ns - self.expected_ns)
 
     def _key(self) -> tuple[int, int, int, int, ClockType]:
         return (self.index, self.expected_ns, self.actual_ns, self.missed, self._clock_type)
@@ -142,12 +154,12 @@ class LoopStats:
     @property
     def mean_lateness(self) -> Duration:
         """Mean lateness over every tick."""
-        return Duration._from_ns(self.total_lateness_ns // self.ticks if self.ticks else 0)
+        return new_duration(self.total_lateness_ns // self.ticks if self.ticks else 0)
 
     @property
     def max_lateness(self) -> Duration:
         """Worst lateness seen."""
-        return Duration._from_ns(self.max_lateness_ns)
+        return new_duration(self.max_lateness_ns)
 
     def percentile(self, q: float) -> Duration:
         """Lateness percentile ``q`` (0-100) over the most recent ticks (nearest rank)."""
@@ -155,9 +167,9 @@ class LoopStats:
             raise InvalidArgumentError(f"percentile must be within [0, 100], got {q!r}")
         data = sorted(self.recent_lateness_ns)
         if not data:
-            return Duration._from_ns(0)
+            return new_duration(0)
         rank = max(math.ceil(q / 100 * len(data)) - 1, 0)
-        return Duration._from_ns(data[rank])
+        return new_duration(data[rank])
 
     def as_dict(self) -> dict[str, float | int]:
         """Plain numbers (seconds) for reports and JSON."""
@@ -199,7 +211,9 @@ class Rate:
     @property
     def period(self) -> Duration:
         """The period, rounded to the nearest nanosecond (deadlines themselves are exact)."""
-        return Duration._from_ns(round(Fraction(self._num, self._den)))
+        from fractions import Fraction
+
+        return new_duration(round(Fraction(self._num, self._den)))
 
     @property
     def policy(self) -> Policy:
@@ -208,7 +222,7 @@ class Rate:
     def _deadline(self, index: int) -> int:
         start = self._start
         if start is None:
-            raise RuntimeError("the rate has not started: iterate it first")
+            raise NotRunningError("the rate has not started: iterate it first")
         return start + index * self._num // self._den
 
     def __aiter__(self) -> Rate:
@@ -226,7 +240,7 @@ class Rate:
         deadline = self._start + index * self._num // self._den
         if now < deadline:
             try:
-                await clock._sleep_until_ns(deadline)
+                await clock.sleep_until_ns(deadline)
             except ClockJumpedError:
                 return self._reanchor()
             now = clock.now_ns()
@@ -321,7 +335,7 @@ class Timer:
         while True:
             self._next_ns = deadline = start + index * self._period_ns
             try:
-                await clock._sleep_until_ns(deadline)
+                await clock.sleep_until_ns(deadline)
             except ClockJumpedError:
                 start, index = clock.now_ns(), 1
                 continue
@@ -360,7 +374,7 @@ class Timer:
 
     @property
     def period(self) -> Duration:
-        return Duration._from_ns(self._period_ns)
+        return new_duration(self._period_ns)
 
     @property
     def is_canceled(self) -> bool:
@@ -390,7 +404,7 @@ class Timer:
         """Time left before the next call; None when canceled or a fired one-shot."""
         if self._canceled or self._next_ns is None:
             return None
-        return Duration._from_ns(max(self._next_ns - self._clock.now_ns(), 0))
+        return new_duration(max(self._next_ns - self._clock.now_ns(), 0))
 
     def __repr__(self) -> str:
         state = "canceled" if self._canceled else "active"

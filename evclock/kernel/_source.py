@@ -98,13 +98,18 @@ class TimeSource(abc.ABC):
     def attach(self, loop: SourceHost) -> None:
         """Called once by the loop (or driver) that this source will drive."""
         if self._host is not None and self._host is not loop:
-            from evclock._errors import EvClockError
+            from evclock._errors import SourceInUseError
 
-            raise EvClockError(
+            raise SourceInUseError(
                 f"{type(self).__name__} is already attached to another loop; "
                 "create one time source per loop"
             )
         self._host = loop
+
+    @property
+    def host(self) -> SourceHost | None:
+        """The kernel this source is attached to (None: not attached)."""
+        return self._host
 
     def detach(self) -> None:
         """Called by a host that stops driving this source (a stopped SimDriver); the

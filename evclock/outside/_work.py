@@ -47,17 +47,22 @@ from asyncio import subprocess as aio_subprocess
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
+from evclock._cpython import (
+    event_waiters,
+    stream_reader_waiter,
+    subprocess_exit_waiters,
+    subprocess_exited,
+    subprocess_finished,
+    thread_registry,
+)
+from evclock._procfs import ThreadState, child_wait_deadline, forget_child, waited_fds
 from evclock.outside._threads import (
     HOLDING_STATES,
     WAKING_STATES,
-    ThreadState,
-    child_wait_deadline,
     describe_thread,
-    forget_child,
     survey,
     thread_state,
     wait_deadline,
-    waited_fds,
 )
 
 _T = TypeVar("_T")
@@ -333,7 +338,7 @@ class OutsideWork:
                 return state is not ThreadState.PARKED
         # Not surveyed (the loop's own thread, when it runs its own executor job inline):
         # judge it directly.
-        current = threading._active.get(ident)  # type: ignore[attr-defined]
+        current = thread_registry.get(ident)
         if current is None:
             return True
         return thread_state(current, None) is not ThreadState.PARKED
@@ -376,7 +381,7 @@ class OutsideWork:
         # asyncio internals (no public equivalent): the futures of Process.wait() callers.
         # asyncio resolves them once the child exited *and* its pipes closed: they hold
         # after the exit too while a grandchild keeps a pipe open.
-        if any(not w.done() for w in getattr(child, "_exit_waiters", None) or ()):
+        if any(not w.done() for w in subprocess_exit_waiters(child)):
             return True
         exited = _child_exited(child)
         protocol = child.get_protocol()
@@ -388,27 +393,24 @@ class OutsideWork:
             # holds the futures of the tasks waiting on it (asyncio internal).
             exit_event = getattr(protocol, "exited", None)
             if isinstance(exit_event, asyncio.Event) and any(
-                not w.done() for w in getattr(exit_event, "_waiters", None) or ()
+                not w.done() for w in event_waiters(exit_event)
             ):
                 return True
         elif not isinstance(protocol, aio_subprocess.SubprocessStreamProtocol):
             return False
         for reader in (protocol.stdout, protocol.stderr):
             # StreamReader._waiter: the future of a pending read (asyncio internal).
-            waiter = getattr(reader, "_waiter", None) if reader is not None else None
+            waiter = stream_reader_waiter(reader) if reader is not None else None
             if waiter is not None and not waiter.done():
                 return True
         return False
 
 
-def _child_exited(child: asyncio.SubprocessTransport) -> bool:
-    # BaseSubprocessTransport._returncode: set when the exit was reported to the loop.
-    return getattr(child, "_returncode", None) is not None
+_child_exited = subprocess_exited
 
 
 def _child_finished(child: asyncio.SubprocessTransport) -> bool:
-    # BaseSubprocessTransport._finished: exited and every pipe closed (asyncio internal);
-    # a closed transport (killed or given up) counts as finished too.
-    if getattr(child, "_finished", False):
+    # Exited with every pipe closed; a closed transport (killed or given up) counts too.
+    if subprocess_finished(child):
         return True
     return child.is_closing() and _child_exited(child)

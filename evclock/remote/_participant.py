@@ -38,7 +38,7 @@ from evclock.remote import _protocol as proto
 from evclock.remote._address import Address, connect, parse_address
 from evclock.remote._server import Message
 from evclock.sources import TimeSource
-from evclock.time._time import SIM, Time
+from evclock.time._time import SIM, new_time
 
 #: Wall seconds between connection attempts while the server is not up yet.
 _RETRY = 0.05
@@ -399,7 +399,7 @@ class RemoteClockSource(TimeSource):
 
     def _deliver(self, messages: list[tuple[int, str, str, bytes]]) -> None:
         for t_ns, sender, topic, data in messages:
-            message = Message(sender, topic, Time._from_ns(t_ns, SIM), data)
+            message = Message(sender, topic, new_time(t_ns, SIM), data)
             for callback in self._subscribers.get(topic, ()):
                 callback(message)
 

@@ -17,7 +17,7 @@ import functools
 import json
 from typing import Any, Final
 
-from evclock._errors import InvalidArgumentError, ProtocolError
+from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
 
 SERVICE: Final = "pybullet"  # reads: request/reply
 TOPIC: Final = "pybullet"  # commands: ordered, applied at the end of the round
@@ -63,7 +63,10 @@ def _plain(value: object) -> object:
     tolist = getattr(value, "tolist", None)
     if callable(tolist):
         return tolist()
-    raise TypeError(f"{type(value).__name__} cannot be sent to the simulation")
+    raise InvalidTypeError(
+        f"{type(value).__name__} cannot be sent to the simulation: pass numbers, strings, "
+        "lists, tuples, dicts or numpy arrays"
+    )
 
 
 def encode_call(name: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> bytes:

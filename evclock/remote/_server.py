@@ -52,7 +52,7 @@ from evclock.kernel._jumps import JumpThreshold, TimeJump
 from evclock.outside._threads import mark_internal
 from evclock.remote import _protocol as proto
 from evclock.remote._address import bound_address, listen, parse_address
-from evclock.time._time import SIM, Duration, Time
+from evclock.time._time import SIM, Duration, Time, new_time
 
 log = logging.getLogger("evclock.remote")
 _BY_INDEX: Final = operator.attrgetter("index")
@@ -178,7 +178,6 @@ class ClockServer:
         except (TypeError, ValueError) as exc:
             raise InvalidArgumentError(f"info must be JSON-serialisable: {exc}") from None
         self._loop = loop
-        self._core = loop._core  # its kernel: sim time read as a plain attribute
         self._policy = on_fault
         self._step_timeout = None if step_timeout is None else float(step_timeout)
         self._token = token
@@ -216,7 +215,7 @@ class ClockServer:
         # A listening socket carries no bytes in flight, nor is it a terminal: the server
         # accounts for it (the loop neither asks it for queued bytes nor polls it for tty
         # input before time moves).
-        loop._account_fd(self._listener.fileno(), True)
+        loop.account_fd(self._listener.fileno(), True)
         self._stop_watch = threading.Event()
         self._watchdog = threading.Thread(
             target=self._watch, name="evclock-clock-server-watchdog", daemon=True
@@ -328,7 +327,7 @@ class ClockServer:
         self._release_all_holds()
         self._remove_step_hook()
         self._jump_handle.remove()
-        self._loop._account_fd(self._listener.fileno(), False)
+        self._loop.account_fd(self._listener.fileno(), False)
         if not self._loop.is_closed():
             self._loop.remove_reader(self._listener)
         self._listener.close()
@@ -339,14 +338,14 @@ class ClockServer:
     # ------------------------------------------------------------ holds
 
     def _hold(self) -> None:
-        # The loop's exact hold count (SimEventLoop._add_hold, evclock's own): sim time
+        # The loop's exact hold count (SimEventLoop.add_hold): sim time
         # stays put while a participant works, as for an executor job.
-        self._loop._add_hold()
+        self._loop.add_hold()
         self._holds += 1
 
     def _release(self) -> None:
         self._holds -= 1
-        self._loop._release_hold_cb(None)
+        self._loop.release_hold(None)
 
     def _release_all_holds(self) -> None:
         while self._holds:
@@ -391,7 +390,7 @@ class ClockServer:
             # The server holds sim time exactly while a peer's traffic matters (a working
             # participant): the loop must not also infer held time from its unread bytes
             # (a follower that reads late must never hold the simulation).
-            self._loop._account_fd(sock.fileno(), True)
+            self._loop.account_fd(sock.fileno(), True)
 
     def _on_readable(self, peer: _Peer) -> None:
         try:
@@ -404,7 +403,7 @@ class ClockServer:
         if not data:
             self._lost(peer, "closed its connection without leaving (killed or crashed)")
             return
-        if len(data) == proto.DONE_SIZE and not peer.reader._buf and peer.name:
+        if len(data) == proto.DONE_SIZE and peer.reader.between_frames and peer.name:
             length, kind, t_ns, next_ns = proto.unpack_done(data)
             if kind == proto.DONE and length == proto.DONE_SIZE - 4:  # a round's DONE alone
                 try:
@@ -524,7 +523,7 @@ class ClockServer:
     def _disconnect(self, peer: _Peer) -> None:
         self._unschedule(peer)
         if peer.sock.fileno() >= 0:
-            self._loop._account_fd(peer.sock.fileno(), False)
+            self._loop.account_fd(peer.sock.fileno(), False)
             if not self._loop.is_closed():
                 self._loop.remove_reader(peer.sock)
                 self._loop.remove_writer(peer.sock)
@@ -551,7 +550,7 @@ class ClockServer:
         _, peers = self._due.pop(t_ns)
         if len(peers) > 1:
             peers.sort(key=_BY_INDEX)  # join order, whatever the DONEs' order
-        now = self._core.now_ns
+        now = self._loop.now_ns
         grant = None
         wall = time.monotonic()
         for peer in peers:
@@ -575,7 +574,7 @@ class ClockServer:
     def _on_done(self, peer: _Peer, t_ns: int, next_ns: int) -> None:
         if peer.jump_acked != peer.jump_sent:
             return  # sent before it read the JUMP: about a time that no longer exists
-        now = self._core.now_ns
+        now = self._loop.now_ns
         if peer.mode == proto.MODE_FOLLOW:
             self._schedule(peer, next_ns, now)
             return
@@ -589,10 +588,8 @@ class ClockServer:
             if due is not None:
                 due[1].append(peer)
             else:
-                # SimEventLoop._call_at_ns (evclock's own): exact integer ns, no float trip.
-                timer = self._loop._call_at_ns(
-                    next_ns, next_ns / 1_000_000_000, self._on_deadline, (next_ns,), None
-                )
+                # SimEventLoop.call_at_ns: exact integer ns, no float round trip.
+                timer = self._loop.call_at_ns(next_ns, self._on_deadline, next_ns)
                 self._due[next_ns] = (timer, [peer])
         else:
             self._schedule(peer, next_ns, now)
@@ -615,10 +612,8 @@ class ClockServer:
         if due is not None:
             due[1].append(peer)
             return
-        # SimEventLoop._call_at_ns (evclock's own): exact integer ns, no float round trip.
-        timer = self._loop._call_at_ns(
-            next_ns, next_ns / 1_000_000_000, self._on_deadline, (next_ns,), None
-        )
+        # SimEventLoop.call_at_ns: exact integer ns, no float round trip.
+        timer = self._loop.call_at_ns(next_ns, self._on_deadline, next_ns)
         self._due[next_ns] = (timer, [peer])
 
     def _unschedule(self, peer: _Peer) -> None:
@@ -657,7 +652,7 @@ class ClockServer:
     def _route(self, sender: str, t_ns: int, topic: str, data: bytes, regrant: list[_Peer]) -> None:
         callbacks = self._subscribers.get(topic)
         if callbacks:
-            message = Message(sender, topic, Time._from_ns(t_ns, SIM), data)
+            message = Message(sender, topic, new_time(t_ns, SIM), data)
             for callback in callbacks:
                 try:
                     callback(message)

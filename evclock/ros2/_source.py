@@ -44,7 +44,7 @@ from evclock.ros2._wire import (
     resolve_topic,
 )
 from evclock.sources import Gate, TimeSource
-from evclock.time._time import SIM, Time
+from evclock.time._time import SIM, Time, new_time
 
 logger = logging.getLogger("evclock.ros2")
 
@@ -171,7 +171,7 @@ class Ros2ClockSource(TimeSource):
     @property
     def latest(self) -> Time | None:
         """The newest ``/clock`` time received (the loop may still be behind it)."""
-        return None if self._latest is None else Time._from_ns(self._latest, SIM)
+        return None if self._latest is None else new_time(self._latest, SIM)
 
     @property
     def received(self) -> int:

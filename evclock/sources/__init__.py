@@ -10,6 +10,7 @@ Layer: above ``evclock.kernel`` (whose source contract and virtual source it re-
 below the hosts. Importing it does not import PyBullet.
 """
 
+from evclock._errors import SourceInUseError
 from evclock.kernel._source import Gate, SourceHost, TimeSource
 from evclock.kernel._virtual import VirtualTimeSource
 from evclock.sources._pybullet import PyBulletTimeSource
@@ -18,6 +19,7 @@ from evclock.sources._stepping import StepHook, SteppingTimeSource, exact_time_s
 __all__ = [
     "Gate",
     "SourceHost",
+    "SourceInUseError",
     "PyBulletTimeSource",
     "StepHook",
     "SteppingTimeSource",
@@ -25,3 +27,5 @@ __all__ = [
     "VirtualTimeSource",
     "exact_time_step",
 ]
+
+SourceInUseError.__module__ = __name__

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 from evclock._errors import InvalidArgumentError, InvalidTypeError, PhysicsError
 from evclock._extras import import_extra
 from evclock.sources._stepping import SteppingTimeSource, format_seconds
-from evclock.time._time import SIM, Duration, Time, to_sim_time_ns
+from evclock.time._time import SIM, Duration, Time, new_time, to_sim_time_ns
 
 if TYPE_CHECKING:
     from evclock.kernel._jumps import TimeJump
@@ -341,4 +341,4 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
                     pb.disconnect(cid)
 
     def __repr__(self) -> str:
-        return f"<PyBulletTimeSource {self.describe()} now={Time._from_ns(self._now, SIM)}>"
+        return f"<PyBulletTimeSource {self.describe()} now={new_time(self._now, SIM)}>"

@@ -23,6 +23,7 @@ from evclock._errors import (
     InvalidTypeError,
     NotRunningError,
     PhysicsError,
+    SimTimeLimitError,
 )
 from evclock.kernel._source import Gate, TimeSource
 from evclock.time._time import (
@@ -31,6 +32,8 @@ from evclock.time._time import (
     Duration,
     Time,
     format_time_range_error,
+    new_duration,
+    new_time,
     to_span_ns,
     whole_number,
 )
@@ -424,7 +427,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         ns = self._base_ns + (self._steps + steps) * self._num // self._den
         if ns > MAX_TIME_NS:
             raise InvalidArgumentError(format_time_range_error(f"{count} steps", ns))
-        return Time._from_ns(ns, SIM)
+        return new_time(ns, SIM)
 
     async def sleep_steps(self, count: int) -> None:
         """Sleep exactly ``count`` steps (a sim-time sleep: a jump raises ClockJumpedError).
@@ -457,8 +460,9 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         The predicate is evaluated now (returning at once if it holds), then after every
         step: the call resolves at the first step where it is true, e.g.
         ``await source.wait_until(lambda: bool(p.getContactPoints(gripper, cube)))``.
-        ``timeout`` (sim seconds or a Duration) raises :class:`TimeoutError` at the first step
-        at or after the deadline where the predicate is still false. If the predicate raises,
+        ``timeout`` (sim seconds or a Duration) raises :class:`~evclock.SimTimeLimitError` (a
+        :class:`TimeoutError`) at the first step at or after the deadline where the predicate
+        is still false. If the predicate raises,
         the error is raised here. A clock jump (reset, restored state) raises
         :class:`ClockJumpedError`, like every pending sim-time wait.
         Costs nothing when no one waits.
@@ -470,15 +474,15 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         deadline: int | None = None
         limit: Duration | None = None
         if timeout is not None:
-            limit = Duration._from_ns(to_span_ns(timeout, "wait_until() timeout"))
+            limit = new_duration(to_span_ns(timeout, "wait_until() timeout"))
         loop = asyncio.get_running_loop()
         if self._host is None or not self._host.serves(loop):
             raise NotRunningError(self._wrong_loop("wait_until()"))
         if predicate():
-            return Time._from_ns(self._now, SIM)
+            return new_time(self._now, SIM)
         if limit is not None:
             if limit.nanoseconds == 0:
-                raise TimeoutError(self._timeout_message(predicate, limit))
+                raise SimTimeLimitError(self._timeout_message(predicate, limit))
             deadline = self._now + limit.nanoseconds
         future: asyncio.Future[Time] = loop.create_future()
         waiter = _Waiter(predicate, future, deadline, limit)
@@ -510,11 +514,11 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
                 future.set_exception(exc)
                 continue
             if holds:
-                future.set_result(Time._from_ns(now, SIM))
+                future.set_result(new_time(now, SIM))
             elif waiter.deadline_ns is not None and now >= waiter.deadline_ns:
                 assert waiter.timeout is not None
                 future.set_exception(
-                    TimeoutError(self._timeout_message(waiter.predicate, waiter.timeout))
+                    SimTimeLimitError(self._timeout_message(waiter.predicate, waiter.timeout))
                 )
             else:
                 keep.append(waiter)
@@ -597,4 +601,4 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         return f"{type(self).__name__} (dt={format_seconds(self.time_step_ns / _NS_PER_S)} s)"
 
     def __repr__(self) -> str:
-        return f"<{type(self).__name__} {self.describe()} now={Time._from_ns(self._now, SIM)}>"
+        return f"<{type(self).__name__} {self.describe()} now={new_time(self._now, SIM)}>"

@@ -10,7 +10,7 @@ import functools
 from collections.abc import Callable, Coroutine
 from typing import TYPE_CHECKING, Any, Final, Literal, TypeVar
 
-from evclock._errors import EvClockError, SimTimeLimitError
+from evclock._errors import PluginUsageError, SimTimeLimitError
 from evclock.hosts._loop import SimEventLoop
 from evclock.testing._budget import BUDGET_HINT, WallTimeBudgetError
 from evclock.testing._describe import describe_tasks
@@ -93,11 +93,7 @@ class CallGuard:
 
 def _would_deadlock(loop: asyncio.AbstractEventLoop) -> bool:
     """Whether a simulation loop has nothing left that could ever wake a task."""
-    if not isinstance(loop, SimEventLoop) or loop.source.free_running:
-        return False
-    if loop._ready or loop._holds or len(loop._io_map) > 1:
-        return False
-    return not loop._core.has_pending()
+    return isinstance(loop, SimEventLoop) and loop.would_deadlock()
 
 
 # The names ``evclock_test`` and ``_run_guarded`` are hidden from task descriptions
@@ -123,10 +119,10 @@ async def _run_guarded(coro: Coroutine[Any, Any, _T], state: ItemState) -> _T:
     task = asyncio.current_task()
     if task is None or (state.expect_sim and not isinstance(loop, SimEventLoop)):
         coro.close()
-        raise EvClockError(wrong_loop_message(state, loop))
+        raise PluginUsageError(wrong_loop_message(state, loop))
     if state.pybullet_source is not None and not state.source_adopted:
         coro.close()
-        raise EvClockError(
+        raise PluginUsageError(
             "evclock: the PyBullet world of this test is not stepped by its loop: the loop was "
             "created before the evclock_pybullet fixture (a loop shared with other tests?); "
             "use a function-scoped loop for tests that use evclock_pybullet"

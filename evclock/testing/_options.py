@@ -9,6 +9,7 @@ from typing import Final
 
 import pytest
 
+from evclock._errors import PluginOptionError
 from evclock.hosts._loop import DEFAULT_STALL_TIMEOUT, check_stall_timeout
 from evclock.hosts._runner import _start_ns, resolve_use_sim_time
 from evclock.kernel._pacing import check_rtf
@@ -32,15 +33,17 @@ def _parse_seconds(value: object, what: str) -> float | None:
         try:
             value = float(text)
         except ValueError:
-            raise ValueError(
+            raise PluginOptionError(
                 f"{what} must be a number of seconds or 'none', got {value!r}"
             ) from None
     if isinstance(value, bool) or not isinstance(value, int | float):
-        raise ValueError(f"{what} must be a number of seconds or None, got {type(value).__name__}")
+        raise PluginOptionError(
+            f"{what} must be a number of seconds or None, got {type(value).__name__}"
+        )
     if value == 0:
         return None
     if not math.isfinite(value) or value < 0:
-        raise ValueError(
+        raise PluginOptionError(
             f"{what} must be a positive number of seconds (0 or None disables it), got {value!r}"
         )
     return float(value)
@@ -54,13 +57,13 @@ def _parse_rtf(value: object, what: str) -> float | None:
         try:
             value = float(text)
         except ValueError:
-            raise ValueError(
+            raise PluginOptionError(
                 f"{what} must be a positive real-time factor or 'none', got {value!r}"
             ) from None
     try:
         return check_rtf(value)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{what}: {exc}") from None
+        raise PluginOptionError(f"{what}: {exc}") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -99,18 +102,18 @@ def config_options(config: pytest.Config) -> Options:
 
 
 def marker_options(item: pytest.Item, defaults: Options) -> Options:
-    """``defaults`` overridden by the test's evclock markers, the closest first (ValueError if
-    one is invalid)."""
+    """``defaults`` overridden by the test's evclock markers, the closest first
+    (:class:`PluginOptionError` if one is invalid)."""
     merged: dict[str, object] = {}
     for mark in item.iter_markers(MARKER):  # closest first: a test's own marker wins
         if mark.args:
-            raise ValueError(
+            raise PluginOptionError(
                 f"@pytest.mark.evclock takes keyword arguments only ({', '.join(_MARKER_ARGS)}), "
                 f"got positional {mark.args!r}"
             )
         for key, value in mark.kwargs.items():
             if key not in _MARKER_ARGS:
-                raise ValueError(
+                raise PluginOptionError(
                     f"@pytest.mark.evclock got an unexpected argument {key!r}; "
                     f"it accepts {', '.join(_MARKER_ARGS)}"
                 )
@@ -129,16 +132,16 @@ def marker_options(item: pytest.Item, defaults: Options) -> Options:
         try:
             stall = check_stall_timeout(merged["stall_timeout"])
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"evclock(stall_timeout=...): {exc}") from None
+            raise PluginOptionError(f"evclock(stall_timeout=...): {exc}") from None
         options = dataclasses.replace(options, stall_timeout=stall)
     if "start" in merged:
         start = merged["start"]
         if not isinstance(start, int | float | Time):
-            raise ValueError(
+            raise PluginOptionError(
                 f"evclock(start=...) must be sim seconds or a sim Time, got {type(start).__name__}"
             )
         try:
             options = dataclasses.replace(options, start_ns=_start_ns(start))
         except (TypeError, ValueError) as exc:
-            raise ValueError(f"evclock(start=...): {exc}") from None
+            raise PluginOptionError(f"evclock(start=...): {exc}") from None
     return options

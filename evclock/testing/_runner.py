@@ -12,6 +12,8 @@ from typing import Any, Final, TypeVar
 
 import pytest
 
+from evclock._errors import PluginUsageError
+
 _T = TypeVar("_T")
 
 #: The (private) fixture that gives a test evclock's runner.
@@ -78,4 +80,7 @@ async def _finish_asyncgen(agen: Any, name: str | None) -> None:
     except StopAsyncIteration:
         return
     await agen.aclose()
-    raise ValueError(f"async generator fixture {name!r} yielded more than once")
+    raise PluginUsageError(
+        f"async generator fixture {name!r} yielded more than once; an async fixture yields "
+        "exactly one value"
+    )

@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import pytest
 
-from evclock._errors import EvClockError
+from evclock._errors import PluginUsageError
 from evclock.hosts._current import attach_clock
 from evclock.hosts._loop import SimEventLoop
 from evclock.kernel._clock import WallClock
@@ -104,7 +104,7 @@ class Session:
         """The loop pytest-asyncio runs ``state``'s test on, made now if it does not exist yet:
         evclock's factory will then hand this one out when pytest-asyncio asks for it."""
         if not _uses_evclock_factory(state.item, self.loop_factory):
-            raise EvClockError(
+            raise PluginUsageError(
                 f"{state.item.nodeid}: this variant runs on another loop factory's loop; "
                 "evclock's fixtures need evclock's (select only 'evclock' in loop_factories)"
             )

@@ -45,7 +45,7 @@ from typing import Any, Final
 
 import pytest
 
-from evclock._errors import DeadlockError, EvClockError
+from evclock._errors import DeadlockError, PluginOptionError, PluginUsageError
 from evclock._extras import import_extra
 from evclock.hosts._current import attach_clock, attached_clock
 from evclock.hosts._loop import SimEventLoop
@@ -79,6 +79,8 @@ from evclock.testing._state import ITEM_STATE, SESSION, ItemState, Session, sess
 
 __all__ = [
     "EVCLOCK_LOOP_FACTORY_NAME",
+    "PluginOptionError",
+    "PluginUsageError",
     "PyBulletWorld",
     "WallTimeBudgetError",
     "evclock_anyio_backend",
@@ -88,6 +90,9 @@ __all__ = [
 ]
 
 _ANYIO_LOOP_FIXTURE: Final = "_evclock_anyio_loop"
+
+# Errors show the name users import them by (evclock.testing.plugin.PluginUsageError).
+PluginOptionError.__module__ = PluginUsageError.__module__ = __name__
 
 
 # --------------------------------------------------------------------------- hooks
@@ -225,7 +230,7 @@ def _back_budget_with_pytest_timeout(item: pytest.Item, session: Session) -> Non
         return
     try:
         wall_timeout = marker_options(item, session.defaults).wall_timeout
-    except ValueError:
+    except PluginOptionError:
         return  # setup reports it
     if wall_timeout is None:
         return
@@ -243,7 +248,7 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
     session = session_of(item.config)
     try:
         options = marker_options(item, session.defaults)
-    except ValueError as exc:
+    except PluginOptionError as exc:
         pytest.fail(f"{item.nodeid}: {exc}", pytrace=False)
     kind = kind_of(item)
     if kind == "asyncio" and not session.asyncio_hooked:
@@ -410,8 +415,10 @@ def _loop_of_test(request: pytest.FixtureRequest) -> asyncio.AbstractEventLoop:
     item = request.node
     state = state_of(item)
     if state is None or not isinstance(item, pytest.Function):
-        raise EvClockError(
-            f"evclock fixtures are function-scoped; {request.fixturename} was requested by {item!r}"
+        raise PluginUsageError(
+            f"evclock fixtures are function-scoped; {request.fixturename} was requested by "
+            f"{item!r}, which is not an evclock test: request it as an argument of the test "
+            "function, or mark the test with @pytest.mark.evclock"
         )
     ensure_pybullet_first(request)
     if state.kind == "asyncio":
@@ -475,7 +482,7 @@ def _evclock_anyio_loop(request: pytest.FixtureRequest) -> Iterator[asyncio.Abst
     backend = request.getfixturevalue("anyio_backend")
     name, options = extract_backend_and_options(backend)
     if name != "asyncio":
-        raise EvClockError(
+        raise PluginUsageError(
             f"evclock needs anyio's asyncio backend with evclock's loop, got {backend!r}; make "
             "the anyio_backend fixture return the evclock_anyio_backend fixture's value"
         )
@@ -513,22 +520,25 @@ def evclock_pybullet(request: pytest.FixtureRequest) -> Iterator[PyBulletWorld]:
     """
     state = state_of(request.node)
     if state is None:
-        raise EvClockError("evclock_pybullet is a function-scoped fixture of an evclock test")
+        raise PluginUsageError(
+            "evclock_pybullet is a function-scoped fixture of an evclock test: request it as an "
+            "argument of the test function, or mark the test with @pytest.mark.evclock"
+        )
     if state.options.wall:
         pytest.skip("evclock_pybullet needs sim time; --evclock-wall runs tests on wall time")
     loop_scope = asyncio_loop_scope(state.item)
     if state.kind == "asyncio" and loop_scope != "function":
-        raise EvClockError(
+        raise PluginUsageError(
             f"evclock_pybullet needs a loop of its own, but this test shares a {loop_scope}-"
             "scoped loop; drop loop_scope from its asyncio marker"
         )
     if state.loops:
-        raise EvClockError(
+        raise PluginUsageError(
             "evclock_pybullet must be set up before the test's loop is created, but a fixture "
             "set up earlier already created it"
         )
     if state.options.start_ns:
-        raise EvClockError(
+        raise PluginUsageError(
             "evclock(start=...) applies to virtual time only; a PyBullet world starts at 0"
         )
     pybullet = import_extra("pybullet", "pybullet", needed_by="the evclock_pybullet fixture")

@@ -20,7 +20,6 @@ import numbers
 import operator
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from fractions import Fraction
 from typing import TYPE_CHECKING, Any, Final, NoReturn, final, overload
 
 from evclock._errors import ClockMismatchError, InvalidArgumentError, InvalidTypeError
@@ -124,6 +123,8 @@ def _number_seconds_to_ns(value: object, what: str) -> int | None:
     if isinstance(value, numbers.Integral):  # e.g. numpy.int64
         return operator.index(value) * _NS_PER_S
     if isinstance(value, numbers.Rational):  # fractions.Fraction: exact, ties to even
+        from fractions import Fraction  # only for exact rationals: off `import evclock`
+
         exact = Fraction(operator.index(value.numerator), operator.index(value.denominator))
         return round(exact * _NS_PER_S)
     if isinstance(value, numbers.Real):  # e.g. numpy.float32
@@ -426,11 +427,6 @@ class Duration:
     def from_nanoseconds(cls, nanoseconds: int) -> Duration:
         """A Duration of exactly ``nanoseconds`` (an int)."""
         return cls(0, nanoseconds)
-
-    @staticmethod
-    def _from_ns(ns: int) -> Duration:
-        """Internal fast constructor: no type or range check."""
-        return _new_duration(ns)
 
     @classmethod
     def from_msg(cls, msg: object) -> Duration:
@@ -738,11 +734,6 @@ class Time:
         _set_time_clock_type(self, clock_type)
         return self
 
-    @staticmethod
-    def _from_ns(ns: int, clock_type: ClockType) -> Time:
-        """Internal fast constructor: no type or range check."""
-        return _new_time(ns, clock_type)
-
     @classmethod
     def from_msg(cls, msg: object, clock_type: ClockType = ClockType.SIM) -> Time:
         """Build from a ``builtin_interfaces/Time``-like message or mapping.
@@ -913,3 +904,13 @@ def _time_checked(ns: int, clock_type: ClockType) -> Time:
     if 0 <= ns <= _I64_MAX:
         return _new_time(ns, clock_type)
     raise _time_range_error(ns)
+
+
+#: Fast constructors for evclock's own hot paths (rates, clocks, the kernel): exact integer
+#: nanoseconds with no type or range check. Not public API: user code builds ``Time`` and
+#: ``Duration`` through their constructors, which validate.
+new_time = _new_time
+new_duration = _new_duration
+#: A Duration's integer nanoseconds, read in C (the sleep hot path; ``.nanoseconds`` is a
+#: property, a Python frame).
+duration_ns: Callable[[Duration], int] = operator.attrgetter("_ns")

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from evclock._errors import EvClockError, InvalidArgumentError
+from evclock._errors import EvClockError, InvalidArgumentError, ParticipantLostError
 from evclock._extras import import_extra
 from evclock.hosts._current import clock
 from evclock.hosts._loop import SimEventLoop
@@ -107,8 +107,10 @@ def serve_scenario(
             wall_s = time.perf_counter() - wall0
         sim_s = loop.time()
         if remote_controllers and not handed:
-            raise EvClockError(
-                f"the controllers left at {sim_s:g} s without handing over their report"
+            raise ParticipantLostError(
+                f"the controllers left at {sim_s:g} s without handing over their report; "
+                "see the output of `evclock control` for why",
+                CONTROLLERS,
             )
         summary = handed["summary"] if remote_controllers else scenario.summary()
         return RunReport(

@@ -231,14 +231,14 @@ def _parse_value(name: str, text: str, default: ParamValue) -> ParamValue:
         if isinstance(default, bool):
             lowered = text.strip().lower()
             if lowered not in ("true", "false", "1", "0"):
-                raise ValueError(text)
+                raise InvalidArgumentError(text)  # reported below, with the parameter
             return lowered in ("true", "1")
         if isinstance(default, int):
             return int(text)
         if isinstance(default, float):
             value = float(text)
             if not math.isfinite(value):
-                raise ValueError(text)
+                raise InvalidArgumentError(text)  # reported below, with the parameter
             return value
     except ValueError:
         raise InvalidArgumentError(

@@ -180,7 +180,7 @@ def parse_seeds(text: str) -> list[int]:
             start_text, _, stop_text = text.partition(":")
             start, stop = int(start_text), int(stop_text)
             if stop <= start:
-                raise ValueError(text)
+                raise InvalidArgumentError(text)  # reported below, with the expected forms
             return list(range(start, stop))
         seeds = [int(part) for part in text.split(",")]
     except ValueError:

@@ -10,12 +10,15 @@ wall-time thresholds.
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import contextlib
 import itertools
 import os
 import re
 import selectors
 import subprocess
 import sys
+import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any, TypeVar
@@ -659,6 +662,165 @@ def test_paced_steps_are_paced_from_the_step_call() -> None:
     assert now == 0.2
 
 
+class _PausedWaits(selectors.DefaultSelector):
+    """A plain asyncio loop's selector that reports each wait with no timeout - nothing
+    ready, no timer: the paused driver waits for a control - as ``snapshot()``, taken on
+    the loop's thread, to the concurrent future of :meth:`expect`. The operator thread waits
+    on that future (never on a sleep: no fixed delays)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.snapshot: Callable[[], object] = lambda: None
+        self._next: concurrent.futures.Future[object] | None = None
+        self._lock = threading.Lock()
+
+    def expect(self) -> concurrent.futures.Future[object]:
+        """The snapshot at the loop's next idle wait (ask before calling the control)."""
+        future: concurrent.futures.Future[object] = concurrent.futures.Future()
+        with self._lock:
+            self._next = future
+        return future
+
+    def select(self, timeout: float | None = None) -> list[Any]:
+        if timeout is None:
+            with self._lock:
+                future, self._next = self._next, None
+            if future is not None:
+                future.set_result(self.snapshot())
+        return list(super().select(timeout))
+
+
+def _operated_driver(
+    script: Callable[[Callable[..., None], Callable[[], None]], None],
+    *,
+    via: str = "directly",
+    start_paused: bool = True,
+    prepare: Callable[[SimDriver], None] = lambda sim: None,
+) -> tuple[list[object], list[float]]:
+    """A task ticks every sim second (8 ticks, ``clock.sleep(1)``) under a paused SimDriver
+    on virtual time; once the driver first waits paused (recorded), an operator thread runs
+    ``script(control, paused_wait)``, which must end with ``resume``: ``control(name, *args)``
+    calls a control of the driver from that thread (directly, or handed over with
+    ``call_soon_threadsafe``), ``paused_wait()`` waits for the driver's next paused wait and
+    records ``(sim time, tick times so far)``. Returns the records and every tick's time."""
+    selector = _PausedWaits()
+    seen: list[object] = []
+    ticks: list[float] = []
+    errors: list[BaseException] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        async with SimDriver(rtf=None, paused=start_paused) as sim:
+            if not start_paused:
+                sim.pause()
+            prepare(sim)
+            selector.snapshot = lambda: (sim.now_ns / 1e9, list(ticks))
+            pending = [selector.expect()]
+
+            def paused_wait() -> None:
+                seen.append(pending.pop().result(10))
+                pending.append(selector.expect())
+
+            def control(name: str, *args: object) -> None:
+                action = getattr(sim, name)
+                if via == "directly":
+                    action(*args)
+                else:
+                    loop.call_soon_threadsafe(action, *args)
+
+            def operate() -> None:
+                try:
+                    paused_wait()
+                    script(control, paused_wait)
+                except BaseException as exc:  # reported below, once the loop stopped
+                    errors.append(exc)
+                    with contextlib.suppress(RuntimeError):  # the loop may be closed already
+                        loop.call_soon_threadsafe(loop.stop)
+
+            async def ticker() -> None:
+                while len(ticks) < 8:
+                    await sim.clock.sleep(1)
+                    ticks.append(sim.now_ns / 1e9)
+
+            task = asyncio.create_task(ticker())
+            thread = threading.Thread(target=operate, daemon=True)
+            thread.start()
+            try:
+                await task
+            finally:
+                thread.join(10)
+
+    try:
+        with asyncio.Runner(loop_factory=lambda: asyncio.SelectorEventLoop(selector)) as r:
+            r.run(main())
+    finally:
+        if errors:
+            raise errors[0]
+    return seen, ticks
+
+
+@pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
+@pytest.mark.parametrize("start_paused", [True, False], ids=["paused=True", "pause()"])
+def test_each_step_from_an_operator_thread_jumps_to_the_next_deadline(
+    via: str, start_paused: bool
+) -> None:
+    """On virtual time a step is one jump to the next deadline (one wake-up batch), after
+    which the driver holds again; step(n) is n jumps; step_until(t) stops exactly at t."""
+
+    def script(control: Callable[..., None], paused_wait: Callable[[], None]) -> None:
+        for _ in range(3):
+            control("step", 1)
+            paused_wait()
+        control("step", 2)
+        paused_wait()
+        control("step_until", Time(seconds=6.5))
+        paused_wait()
+        control("resume")
+
+    seen, ticks = _operated_driver(script, via=via, start_paused=start_paused)
+    assert seen == [
+        (0.0, []),
+        (1.0, [1.0]),
+        (2.0, [1.0, 2.0]),
+        (3.0, [1.0, 2.0, 3.0]),  # and no further until the next control
+        (5.0, [1.0, 2.0, 3.0, 4.0, 5.0]),
+        (6.5, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+    ]
+    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+
+
+@pytest.mark.parametrize("how", ["pause", "resume", "step_until"])
+def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str) -> None:
+    """pause(), resume() or a new step_until() end a step_until() before its target: its
+    stop mark goes with it, so a later step still jumps to the next wake-up, not there."""
+
+    def prepare(sim: SimDriver) -> None:
+        sim.step_until(Time(seconds=2.5))  # placed now (on the loop's thread), never reached:
+        if how == "pause":
+            sim.pause()
+        elif how == "resume":
+            sim.resume()
+            sim.pause()
+        else:
+            sim.step_until(Time(seconds=0.5))  # replaced by a nearer target
+
+    def script(control: Callable[..., None], paused_wait: Callable[[], None]) -> None:
+        for _ in range(3):
+            control("step", 1)
+            paused_wait()
+        control("resume")
+
+    seen, ticks = _operated_driver(script, prepare=prepare)
+    first = 0.5 if how == "step_until" else 0.0
+    assert seen == [
+        (first, []),
+        (1.0, [1.0]),
+        (2.0, [1.0, 2.0]),
+        (3.0, [1.0, 2.0, 3.0]),
+    ]
+    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+
+
 # ------------------------------------------------------------------ jumps
 
 
@@ -898,7 +1060,7 @@ def test_start_needs_a_running_loop_that_is_not_a_sim_loop() -> None:
         SimDriver(source).start()
 
     try:
-        with pytest.raises(evclock.EvClockError) as base:
+        with pytest.raises(evclock.sources.SourceInUseError) as base:
             asyncio.run(source_in_use())
     finally:
         loop.close()

@@ -3,9 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
+import contextlib
 import math
+import selectors
 import signal
 import socket
+import threading
+from collections.abc import Callable
 from typing import Any
 
 import pytest
@@ -374,3 +379,182 @@ def test_futures_of_the_loop_are_bound_to_it_inside_and_outside_its_run() -> Non
         outside.cancel()
     finally:
         loop.close()
+
+
+# ------------------------------------------- stepping a paused loop from an operator thread
+
+
+class _PausedWaits(selectors.DefaultSelector):
+    """Reports each time the loop waits with no timeout - paused, with nothing left to step
+    (``stall_timeout`` bounds every other wait) - as ``snapshot()``, taken on the loop's
+    thread, to the concurrent future of :meth:`expect`. The operator thread waits on that
+    future: a wait that never holds sim time, whatever its timeout (an ``Event.wait(10)``
+    would: it may be a delay)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.snapshot: Callable[[], object] = lambda: None
+        self._next: concurrent.futures.Future[object] | None = None
+        self._lock = threading.Lock()
+
+    def expect(self) -> concurrent.futures.Future[object]:
+        """The snapshot at the loop's next paused wait (ask before calling the control)."""
+        future: concurrent.futures.Future[object] = concurrent.futures.Future()
+        with self._lock:
+            self._next = future
+        return future
+
+    def select(self, timeout: float | None = None) -> list[Any]:
+        if timeout is None:
+            with self._lock:
+                future, self._next = self._next, None
+            if future is not None:
+                future.set_result(self.snapshot())
+        return list(super().select(timeout))
+
+
+class _Operator:
+    """An operator thread's view of a paused loop: :meth:`control` calls a control
+    (directly, or handed over with ``call_soon_threadsafe``), then waits for the loop's next
+    paused wait and records ``(sim time, tick times so far)`` in :attr:`seen`."""
+
+    def __init__(self, loop: SimEventLoop, selector: _PausedWaits, via: str) -> None:
+        self.loop = loop
+        self.via = via
+        self.seen: list[object] = []
+        self._selector = selector
+        self._next = selector.expect()  # the loop's first paused wait
+
+    def paused_wait(self) -> None:
+        self.seen.append(self._next.result(10))
+        self._next = self._selector.expect()
+
+    def control(self, name: str, *args: object) -> None:
+        action = getattr(self.loop, name)
+        if self.via == "directly":
+            action(*args)
+        else:
+            self.loop.call_soon_threadsafe(action, *args)
+
+
+def _operated_run(
+    script: Callable[[_Operator], None],
+    *,
+    via: str = "directly",
+    sleeper: str = "asyncio.sleep",
+    start_paused: bool = True,
+    prepare: Callable[[SimEventLoop], None] = lambda loop: None,
+) -> tuple[list[object], list[float]]:
+    """A task ticks every sim second (8 ticks) on a paused SimEventLoop on virtual time;
+    once the loop first waits paused (recorded), an operator thread runs ``script``, which
+    must end with ``resume()``. Returns the operator's records and every tick's time."""
+    selector = _PausedWaits()
+    loop = SimEventLoop(selector=selector, paused=start_paused, stall_timeout=10)
+    ticks: list[float] = []
+    selector.snapshot = lambda: (loop.time(), list(ticks))
+    operator = _Operator(loop, selector, via)
+    errors: list[BaseException] = []
+
+    def operate() -> None:
+        try:
+            operator.paused_wait()
+            script(operator)
+        except BaseException as exc:  # reported below, once the loop stopped
+            errors.append(exc)
+            with contextlib.suppress(RuntimeError):  # the loop may be closed already
+                loop.call_soon_threadsafe(loop.stop)
+
+    async def main() -> None:
+        if not start_paused:
+            loop.pause()
+        prepare(loop)
+        sleep = asyncio.sleep if sleeper == "asyncio.sleep" else evclock.clock().sleep
+
+        async def ticker() -> None:
+            while len(ticks) < 8:
+                await sleep(1)
+                ticks.append(loop.time())
+
+        task = asyncio.ensure_future(ticker())
+        thread = threading.Thread(target=operate, daemon=True)
+        thread.start()
+        try:
+            await task
+        finally:
+            thread.join(10)
+
+    try:
+        with asyncio.Runner(loop_factory=lambda: loop) as runner:
+            runner.run(main())
+    finally:
+        if errors:
+            raise errors[0]
+    return operator.seen, ticks
+
+
+@pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
+@pytest.mark.parametrize("sleeper", ["asyncio.sleep", "clock.sleep"])
+@pytest.mark.parametrize("start_paused", [True, False], ids=["paused=True", "pause()"])
+def test_each_step_from_an_operator_thread_jumps_to_the_next_deadline(
+    via: str, sleeper: str, start_paused: bool
+) -> None:
+    """On virtual time a step is one jump to the next deadline (one wake-up batch), after
+    which the loop holds again; step(n) is n jumps; step_until(t) stops exactly at t."""
+
+    def script(op: _Operator) -> None:
+        for _ in range(3):
+            op.control("step", 1)
+            op.paused_wait()
+        op.control("step", 2)
+        op.paused_wait()
+        op.control("step_until", Time(6.5))
+        op.paused_wait()
+        op.control("resume")
+
+    seen, ticks = _operated_run(script, via=via, sleeper=sleeper, start_paused=start_paused)
+    assert seen == [
+        (0.0, []),
+        (1.0, [1.0]),
+        (2.0, [1.0, 2.0]),
+        (3.0, [1.0, 2.0, 3.0]),  # and no further until the next control
+        (5.0, [1.0, 2.0, 3.0, 4.0, 5.0]),
+        (6.5, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+    ]
+    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+
+
+def _end_a_step_until(how: str) -> Callable[[SimEventLoop], None]:
+    def prepare(loop: SimEventLoop) -> None:
+        loop.pause()
+        loop.step_until(Time(2.5))  # placed now (on the loop's thread), never reached:
+        if how == "pause":
+            loop.pause()
+        elif how == "resume":
+            loop.resume()
+            loop.pause()
+        else:
+            loop.step_until(Time(0.5))  # replaced by a nearer target
+
+    return prepare
+
+
+@pytest.mark.parametrize("how", ["pause", "resume", "step_until"])
+def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str) -> None:
+    """pause(), resume() or a new step_until() end a step_until() before its target: its
+    stop mark goes with it, so a later step still jumps to the next wake-up, not there."""
+
+    def script(op: _Operator) -> None:
+        for _ in range(3):
+            op.control("step", 1)
+            op.paused_wait()
+        op.control("resume")
+
+    seen, ticks = _operated_run(script, prepare=_end_a_step_until(how))
+    first = 0.5 if how == "step_until" else 0.0
+    assert seen == [
+        (first, []),
+        (1.0, [1.0]),
+        (2.0, [1.0, 2.0]),
+        (3.0, [1.0, 2.0, 3.0]),
+    ]
+    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]

@@ -291,3 +291,94 @@ def test_a_clock_sleep_nobody_awaits_yet_still_ends_at_its_time() -> None:
     now, done_at_two, expected = evclock.run(main())
     assert done_at_two is True
     assert now == expected
+
+
+def _instant(loop: asyncio.AbstractEventLoop) -> asyncio.AbstractEventLoop:
+    """A stock ``asyncio.new_event_loop()`` on instant time: its clock is fake and a wait
+    for ``timeout`` lets that much of it pass at once (no FIFO ties: asyncio's own heap)."""
+    selector: Any = loop._selector  # type: ignore[attr-defined]
+    poll = selector.select
+    now = [0.0]
+
+    def select(timeout: float | None = None) -> list[Any]:
+        if timeout is None:
+            raise AssertionError("the stock loop would block forever (a deadlock)")
+        now[0] += timeout
+        return list(poll(0))
+
+    selector.select = select
+    loop.time = lambda: now[0]  # type: ignore[method-assign]
+    return loop
+
+
+class _LoopTimeClock(evclock.Clock):
+    """``clock.sleep`` and ``clock.timer`` on a plain loop's own time, as what they are in
+    asyncio terms: a future resolved by a timer."""
+
+    clock_type = evclock.SIM
+
+    def now_ns(self) -> int:
+        return round(asyncio.get_running_loop().time() * 1e9)
+
+    def sleep(self, duration: float | evclock.Duration) -> Coroutine[Any, Any, None]:
+        assert isinstance(duration, float)
+        return timer_sleep(duration)
+
+    async def sleep_until_ns(self, when_ns: int) -> None:
+        loop = asyncio.get_running_loop()
+        fut: asyncio.Future[None] = loop.create_future()
+        handle = loop.call_at(when_ns / 1e9, _SET_RESULT_UNLESS_CANCELLED, fut, None)
+        try:
+            await fut
+        finally:
+            handle.cancel()
+
+
+async def _all_due_at_one_instant(clock: evclock.Clock) -> list[str]:
+    """call_at, call_later, asyncio.sleep, clock.sleep and a clock.timer all due at 1 s,
+    scheduled interleaved: what ran there, in order."""
+    loop = asyncio.get_running_loop()
+    order: list[str] = []
+
+    async def sleeper(label: str, sleep: Callable[[float], Any]) -> None:
+        await sleep(1.0)
+        order.append(label)
+
+    tasks = [asyncio.ensure_future(sleeper("clock.sleep A", clock.sleep))]
+    await asyncio.sleep(0)  # the task schedules its wait before the next entry is scheduled
+    loop.call_at(1.0, order.append, "call_at A")
+    clock.timer(1.0, lambda: order.append("clock.timer"), oneshot=True)  # a task: waits now
+    await asyncio.sleep(0)
+    tasks.append(asyncio.ensure_future(sleeper("asyncio.sleep", asyncio.sleep)))
+    await asyncio.sleep(0)
+    loop.call_later(1.0, order.append, "call_later")
+    tasks.append(asyncio.ensure_future(sleeper("clock.sleep B", clock.sleep)))
+    await asyncio.sleep(0)
+    loop.call_at(1.0, order.append, "call_at B")
+    await asyncio.gather(*tasks)
+    assert loop.time() == 1.0
+    return order
+
+
+def test_at_one_instant_callbacks_run_before_the_tasks_resumed_there() -> None:
+    """What the README says of one instant: the plain callbacks due at t (call_at,
+    call_later) run before the tasks resumed at t (asyncio.sleep, clock.sleep), each group
+    in scheduling order, with clock.timer callbacks among the tasks. The grouping is stock
+    asyncio's (checked on ``asyncio.new_event_loop()`` on instant time); the order within a
+    group is FIFO, where stock asyncio's heap leaves ties in no particular order (checked on
+    the FIFO reference)."""
+    callbacks = ["call_at A", "call_later", "call_at B"]
+    tasks = ["clock.sleep A", "clock.timer", "asyncio.sleep", "clock.sleep B"]
+
+    async def on_sim() -> list[str]:
+        return await _all_due_at_one_instant(evclock.clock())
+
+    with asyncio.Runner(loop_factory=SimEventLoop) as runner:
+        sim = runner.run(on_sim())
+    with asyncio.Runner(loop_factory=ReferenceLoop) as runner:
+        fifo = runner.run(_all_due_at_one_instant(_LoopTimeClock()))
+    with asyncio.Runner(loop_factory=lambda: _instant(asyncio.new_event_loop())) as runner:
+        stock = runner.run(_all_due_at_one_instant(_LoopTimeClock()))
+    assert sim == fifo == callbacks + tasks
+    assert sorted(stock[:3]) == sorted(callbacks)
+    assert sorted(stock[3:]) == sorted(tasks)

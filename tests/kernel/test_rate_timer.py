@@ -271,6 +271,17 @@ def test_bad_timer_periods(period: object, error: type[Exception], message: str)
     assert str(info.value) == message
 
 
+def test_a_rate_has_no_deadlines_before_it_starts() -> None:
+    async def main() -> None:
+        rate = evclock.clock().rate(10)
+        with pytest.raises(
+            evclock.NotRunningError, match=r"^the rate has not started: iterate it first$"
+        ):
+            rate._deadline(1)
+
+    evclock.run(main())
+
+
 def test_timer_needs_a_callable() -> None:
     async def main() -> None:
         evclock.clock().timer(1, "not callable")  # type: ignore[arg-type]

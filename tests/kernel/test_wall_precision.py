@@ -59,7 +59,7 @@ def no_prctl(monkeypatch: pytest.MonkeyPatch) -> None:
 async def _check_never_early(clock: evclock.WallClock) -> None:
     for ns in DURATIONS_NS:
         deadline = clock.now_ns() + ns
-        await clock._sleep_until_ns(deadline)
+        await clock.sleep_until_ns(deadline)
         assert clock.now_ns() >= deadline, ns
         # The public forms: sleep_until(Time) and sleep(seconds | Duration).
         when = clock.now() + Duration(nanoseconds=ns)
@@ -112,7 +112,7 @@ def test_many_concurrent_sleepers_each_wake_at_or_after_their_own_deadline() -> 
         offsets = [3_000_000, 500_000, 1_500_000, 500_000, -1, 2_000_000, 100_000, 4_200_000]
 
         async def sleeper(offset: int) -> tuple[int, int]:
-            await clock._sleep_until_ns(base + offset)
+            await clock.sleep_until_ns(base + offset)
             return base + offset, clock.now_ns()
 
         return list(await asyncio.gather(*(sleeper(o) for o in offsets)))
@@ -126,16 +126,16 @@ def test_a_cancelled_sleeper_does_not_disturb_the_others() -> None:
     async def main() -> tuple[bool, int, int]:
         clock = evclock.WallClock(spin_margin=0)
         start = clock.now_ns()
-        doomed = asyncio.ensure_future(clock._sleep_until_ns(start + 1_000_000))
+        doomed = asyncio.ensure_future(clock.sleep_until_ns(start + 1_000_000))
         survivor_deadline = start + 3_000_000
-        survivor = asyncio.ensure_future(clock._sleep_until_ns(survivor_deadline))
+        survivor = asyncio.ensure_future(clock.sleep_until_ns(survivor_deadline))
         await asyncio.sleep(0)
         doomed.cancel()
         await survivor
         woke = clock.now_ns()
         # The timer keeps serving new sleepers after a cancellation.
         later = clock.now_ns() + 200_000
-        await clock._sleep_until_ns(later)
+        await clock.sleep_until_ns(later)
         assert clock.now_ns() >= later
         return doomed.cancelled(), woke, survivor_deadline
 
@@ -149,7 +149,7 @@ def test_a_past_deadline_still_yields_once() -> None:
         clock = evclock.WallClock()
         order: list[str] = []
         asyncio.get_running_loop().call_soon(order.append, "other")
-        await clock._sleep_until_ns(clock.now_ns() - 1_000_000)
+        await clock.sleep_until_ns(clock.now_ns() - 1_000_000)
         order.append("sleeper")
         asyncio.get_running_loop().call_soon(order.append, "other again")
         await clock.sleep(0)
@@ -198,7 +198,7 @@ def test_other_tasks_run_while_a_precise_sleeper_waits(margin: float) -> None:
     # ends (and cancels the sleeper) once the other tasks have run: no wall-time window.
     async def main() -> tuple[int, bool]:
         clock = evclock.WallClock(spin_margin=margin)
-        sleeper = asyncio.create_task(clock._sleep_until_ns(clock.now_ns() + 30 * 10**9))
+        sleeper = asyncio.create_task(clock.sleep_until_ns(clock.now_ns() + 30 * 10**9))
         await asyncio.sleep(0)  # the sleeper is waiting
         counter = 0
         ticked = asyncio.Event()
@@ -413,10 +413,13 @@ def test_prctl_failure_is_a_no_op(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 def test_timer_slack_must_be_positive() -> None:
-    with pytest.raises(ValueError, match="positive"):
+    message = "^timer slack must be a positive number of nanoseconds, got {}$"
+    with pytest.raises(evclock.InvalidArgumentError, match=message.format(0)):
         _precise.set_timer_slack(0)
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(evclock.InvalidArgumentError, match=message.format(0)):
         _precise.TimerSlack(0)
+    with pytest.raises(evclock.InvalidArgumentError, match=message.format("True")):
+        _precise.TimerSlack(True)
 
 
 def test_timer_slack_is_lowered_only_while_waiting_and_restored() -> None:

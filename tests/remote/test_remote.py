@@ -573,6 +573,20 @@ def test_a_long_wait_on_a_live_server_is_not_a_lost_clock(tmp_path: Path) -> Non
     assert json.loads(out) == [0, 3_000_000_000]
 
 
+def test_physics_calls_carry_plain_and_numpy_values_only() -> None:
+    np = pytest.importorskip("numpy")
+    from evclock.remote._physics import encode_call
+
+    data = encode_call("resetBasePositionAndOrientation", (1, np.zeros(2)), {"physicsClientId": 0})
+    assert json.loads(data) == ["resetBasePositionAndOrientation", [1, [0.0, 0.0]], {}]
+    with pytest.raises(
+        evclock.InvalidTypeError,
+        match=r"^object cannot be sent to the simulation: pass numbers, strings, lists, "
+        r"tuples, dicts or numpy arrays$",
+    ):
+        encode_call("resetBasePositionAndOrientation", (object(),), {})
+
+
 def test_whole_frames_one_or_several_per_read() -> None:
     reader = proto.Reader()
     assert reader.feed(proto.grant(7)) == [(proto.GRANT, (7).to_bytes(8, "little"))]

@@ -14,9 +14,11 @@ import sys
 from pathlib import Path
 
 import pytest
-from _remote_helpers import ROOT, WAIT
+from _remote_helpers import ROOT, WAIT, finish, spawn
 
+from evclock.remote import ParticipantLostError
 from evclock.tools._cli import run_scenario
+from evclock.tools._cli_remote import serve_scenario
 
 CLI = [sys.executable, "-c", "from evclock.tools._cli import main; main()"]
 
@@ -94,6 +96,29 @@ def test_controllers_for_another_scenario_or_seed_are_refused(tmp_path: Path) ->
         f"error: the simulation at {address} runs 'kuka' with seed 0, but these controllers "
         "are 'kuka' with seed 1; use the same on both" in " ".join(output.split())
     )
+
+
+@pytest.mark.pybullet
+def test_controllers_that_leave_without_their_report_are_a_lost_participant(
+    tmp_path: Path,
+) -> None:
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    silent = spawn(
+        tmp_path,
+        "import evclock\nasync def main(): pass\nevclock.run(main())\n",
+        EVCLOCK_CLOCK=f"{address}?name=controllers",
+    )  # started first: it waits for the server to appear
+    try:
+        with pytest.raises(
+            ParticipantLostError,
+            match=r"^the controllers left at [0-9.e+-]+ s without handing over their report; "
+            r"see the output of `evclock control` for why$",
+        ) as info:
+            serve_scenario("kuka", address=address, remote_controllers=True)
+    finally:
+        code, _, err = finish(silent)
+    assert info.value.name == "controllers"
+    assert code == 0, err
 
 
 def test_remote_controllers_needs_serve() -> None:

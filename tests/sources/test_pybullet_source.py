@@ -295,7 +295,11 @@ def test_one_source_per_loop(client: int) -> None:
     source = PyBulletTimeSource(client)
     loop = SimEventLoop(source)
     try:
-        with pytest.raises(evclock.EvClockError, match="already attached to another loop"):
+        with raises_exactly(
+            evclock.sources.SourceInUseError,
+            "PyBulletTimeSource is already attached to another loop; create one time source "
+            "per loop",
+        ):
             SimEventLoop(source)
     finally:
         loop.close()
@@ -762,22 +766,23 @@ def test_wait_until_times_out_in_sim_time(client: int) -> None:
 
     async def main() -> None:
         with raises_exactly(
-            TimeoutError,
+            SimTimeLimitError,
             "wait_until(test_wait_until_times_out_in_sim_time.<locals>.never) timed out: the "
             "predicate stayed false for 0.100000000 s of sim time",
         ):
             await source.wait_until(never, timeout=0.1)
         assert evclock.clock().now_ns() == 100_000_000  # 24 steps of 1/240 s, exactly
         with raises_exactly(
-            TimeoutError,
+            SimTimeLimitError,
             "wait_until(test_wait_until_times_out_in_sim_time.<locals>.never) timed out: the "
             "predicate stayed false for 0.000000000 s of sim time",
         ):
             await source.wait_until(never, timeout=Duration(0))
-        with pytest.raises(TimeoutError):
+        with pytest.raises(SimTimeLimitError):
             await source.wait_until(never, timeout=Duration(nanoseconds=1))
 
     run(main, source)
+    assert issubclass(SimTimeLimitError, TimeoutError)  # wait_until's timeout stays one
     assert source.step_index == 25
     assert not source._slow  # no waiter left: the fast path is back
 

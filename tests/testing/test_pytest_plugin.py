@@ -619,10 +619,18 @@ def test_pytest_asyncio_test_loop_from_a_sync_fixture(pytester: pytest.Pytester)
 
         @pytest.mark.asyncio(loop_factories=["asyncio", "evclock"])
         async def test_variants(request):
+            import re
+            from evclock.testing.plugin import PluginUsageError
+
             if isinstance(asyncio.get_running_loop(), evclock.SimEventLoop):
                 request.getfixturevalue("evclock_loop")
             else:
-                with pytest.raises(evclock.EvClockError, match="another loop factory's loop"):
+                message = (
+                    "::test_variants[asyncio]: this variant runs on another loop factory's "
+                    "loop; evclock's fixtures need evclock's (select only 'evclock' in "
+                    "loop_factories)"
+                )
+                with pytest.raises(PluginUsageError, match=re.escape(message) + "$"):
                     request.getfixturevalue("evclock_loop")
         """
     )

@@ -29,6 +29,8 @@ from evclock.time._time import (
     DurationMsg,
     Time,
     TimeMsg,
+    new_duration,
+    new_time,
     to_nanoseconds,
     to_nonnegative_nanoseconds,
 )
@@ -132,7 +134,7 @@ def test_from_nanoseconds_is_exact(n: int) -> None:
     d = Duration.from_nanoseconds(n)
     assert d.nanoseconds == n
     assert Duration(nanoseconds=n) == d
-    assert Duration._from_ns(n) == d
+    assert new_duration(n) == d
     assert d.seconds == n / NS
 
 
@@ -433,7 +435,7 @@ def test_duration_ordering_matches_nanoseconds(a: Duration, b: Duration) -> None
 
 @given(any_ns)
 def test_duration_hash_and_equality(n: int) -> None:
-    a, b = Duration(nanoseconds=n), Duration._from_ns(n)
+    a, b = Duration(nanoseconds=n), new_duration(n)
     assert a == b
     assert hash(a) == hash(b)
     assert len({a, b}) == 1
@@ -569,7 +571,7 @@ def test_time_construction() -> None:
     assert Time(1.5, 1, SYSTEM).nanoseconds == 1_500_000_001
     assert Time(nanoseconds=5, clock_type=STEADY).clock_type is STEADY
     assert Time(0, I64_MAX).nanoseconds == I64_MAX
-    assert Time._from_ns(7, SYSTEM) == Time(nanoseconds=7, clock_type=SYSTEM)
+    assert new_time(7, SYSTEM) == Time(nanoseconds=7, clock_type=SYSTEM)
 
 
 @pytest.mark.parametrize(
@@ -649,7 +651,7 @@ def test_time_ordering_matches_nanoseconds(a: int, b: int, domain: ClockType) ->
 @given(time_ns, domains, domains)
 def test_time_equality_and_hash_include_domain(n: int, d1: ClockType, d2: ClockType) -> None:
     t1 = Time(nanoseconds=n, clock_type=d1)
-    t2 = Time._from_ns(n, d2)
+    t2 = new_time(n, d2)
     assert (t1 == t2) == (d1 is d2)
     assert (t1 != t2) == (d1 is not d2)
     if d1 is d2:
