@@ -53,6 +53,8 @@ from evclock._errors import (
 from evclock.hosts._tasks import describe_tasks
 from evclock.kernel._core import DEADLOCK, HELD, MOVED, PACING, WAIT_IO, SimCore
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, PacingControls
+from evclock.kernel._source import TimeSource
+from evclock.kernel._virtual import VirtualTimeSource
 from evclock.outside._threads import (
     EVENT_LOOP_WAITS,
     check_thread_inference,
@@ -60,8 +62,6 @@ from evclock.outside._threads import (
     internal_count,
 )
 from evclock.outside._work import EXACT, OutsideWork
-from evclock.kernel._source import TimeSource
-from evclock.kernel._virtual import VirtualTimeSource
 from evclock.time._time import MAX_TIME_NS, real_number
 
 if TYPE_CHECKING:
