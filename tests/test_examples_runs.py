@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -34,6 +35,10 @@ def test_shuttle_scenario_runs_from_python() -> None:
 
 
 @pytest.mark.pybullet
+@pytest.mark.skipif(
+    any(importlib.util.find_spec(name) is None for name in ("mcap", "matplotlib")),
+    reason="needs evclock[record] (mcap) and evclock[plot] (matplotlib)",
+)
 def test_sweep_record_plot_example(tmp_path: Path) -> None:
     lines = run_example("examples/sweep_record_plot.py", str(tmp_path))
     assert lines[0] == "sweep: 8 runs, success rate 100%"

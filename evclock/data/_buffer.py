@@ -44,6 +44,9 @@ from evclock.time._time import (
 __all__ = ["Interpolation", "TimeBuffer"]
 
 Interpolation = Literal["exact", "previous", "nearest", "linear", "slerp"]
+"""How :meth:`TimeBuffer.at` answers between samples: ``"exact"`` (a sample stamped exactly t),
+``"previous"`` (zero-order hold), ``"nearest"``, ``"linear"`` or ``"slerp"`` (unit quaternions
+``(x, y, z, w)``, shorter arc)."""
 _METHODS: Final = get_args(Interpolation)
 _UNIT_TOLERANCE: Final = 1e-6
 

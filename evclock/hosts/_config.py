@@ -13,6 +13,8 @@ if TYPE_CHECKING:
     from evclock.sources import TimeSource
 
 ENV_USE_SIM_TIME = "EVCLOCK_USE_SIM_TIME"
+"""The environment variable that decides ``use_sim_time`` when ``evclock.run()`` is not told:
+``1/true/yes/on`` or ``0/false/no/off`` (unset: sim time)."""
 _TRUE = ("1", "true", "yes", "on")
 _FALSE = ("0", "false", "no", "off")
 
@@ -33,6 +35,8 @@ def env_use_sim_time() -> bool | None:
 
 
 ENV_CLOCK = "EVCLOCK_CLOCK"
+"""The environment variable naming the clock to join when ``evclock.run()`` gets no ``clock=``:
+a URL such as ``unix:///tmp/sim.sock?name=controller`` or ``ros2:///clock``."""
 
 #: The clock-scheme registry: URL scheme -> "module:function" making the TimeSource of a URL.
 #: Entries are import paths so that ``import evclock`` stays light; a package adds its own

@@ -576,8 +576,9 @@ class SimDriver(PacingControls):
         ready = self._ready_queue
         return bool(ready) if ready is not None else bool(self._probe)
 
-    def time_held(self) -> bool:
-        """Whether :meth:`hold_time` holds sim time."""
+    def time_held(self, paused: bool) -> bool:
+        """Whether :meth:`hold_time` holds sim time (the driver sees no threads: ``paused``
+        changes nothing here)."""
         return self._holds > 0
 
     def could_wake(self) -> bool:

@@ -577,7 +577,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """Whether a callback is ready to run (the kernel does not advance then)."""
         return bool(self._ready)
 
-    def time_held(self) -> bool:
+    def time_held(self, paused: bool = False) -> bool:
         """Is sim time held by work outside the loop (holds, executor jobs, awaited child
         processes, bytes in flight, busy threads: evclock/_outside.py)?
 
@@ -588,7 +588,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if self._source_external and self._source_alone():
             self._holder = None  # EXTERNAL-SOURCE HOOK: nothing outside but the source
             return False
-        holder = self._holder = self._outside.holder()  # OUTSIDE HOOK
+        holder = self._holder = self._outside.holder(timed_waits_hold=not paused)
         if holder is not None:
             horizon = self._outside.horizon_ns
             if horizon is None:

@@ -172,9 +172,11 @@ class SimClock(Clock):
         return host
 
     def now_ns(self) -> int:
+        """Current sim time in integer nanoseconds."""
         return self.core.now_ns
 
     def now(self) -> Time:
+        """Current sim time, a :class:`Time` of the ``SIM`` domain."""
         return new_time(self.core.now_ns, SIM)
 
     sleep = clock_sleep  # the kernel's: every controller's hot path, in one frame
@@ -276,9 +278,14 @@ class WallClock(Clock):
         return new_duration(self._spin_margin_ns)
 
     def now_ns(self) -> int:
+        """Current wall time of this clock's domain in integer nanoseconds."""
         return self._read()
 
     async def sleep(self, duration: float | Duration) -> None:
+        """Wait ``duration`` (seconds or a :class:`Duration`) of wall time, precisely.
+
+        Never returns before the deadline; see the class for how (timerfd, spin margin).
+        """
         ns = sleep_duration_ns(duration)
         if not self._precise:
             await asyncio.sleep(ns / 1e9)
@@ -294,6 +301,7 @@ class WallClock(Clock):
         )
 
     async def sleep_until_ns(self, when_ns: int) -> None:
+        """Wait until this clock reads at least ``when_ns``, precisely (no validation)."""
         if not self._precise:
             delay = when_ns - self._read()
             await asyncio.sleep(delay / 1e9 if delay > 0 else 0)

@@ -154,8 +154,12 @@ class CoreHost(Protocol):
         """Is anything else runnable at the current time (a task, a callback)?"""
         ...
 
-    def time_held(self) -> bool:
-        """Is sim time held by work outside the host (executor jobs, holds, busy threads)?"""
+    def time_held(self, paused: bool) -> bool:
+        """Is sim time held by work outside the host (executor jobs, holds, busy threads)?
+
+        ``paused``: the host is paused (time moves only by steps), so sim time and wall
+        time are decoupled and a thread's timed wait is no event on sim time: it does not
+        hold. Running threads, executor jobs, children and explicit holds still do."""
         ...
 
     def could_wake(self) -> bool:
@@ -480,14 +484,19 @@ class SimCore:
         if (target is not None and target <= self.now_ns) or self._anything_runnable():
             return DUE
         host = self.host
-        if host.time_held():
+        pacer = self.pacer
+        if pacer.paused and pacer.waits_for_control():
+            # A pause outranks a hold: nothing moves until a control, however long, so
+            # the host waits as paused (unbounded), not as held (bounded by stall_timeout).
+            self.pacing_delay = None
+            return PACING
+        if host.time_held(pacer.paused):
             return HELD
         if self._anything_runnable():
             return DUE  # a thread handed work over (and ended) while the host looked
         source = self.source
         if target is None and not source.free_running:
             return WAIT_IO if host.could_wake() else DEADLOCK
-        pacer = self.pacer
         gate = None if pacer.unpaced else pacer.allow
         before = self.now_ns
         now = self.now_ns = source.advance(target, gate)

@@ -196,6 +196,16 @@ class Pacer:
             f"{what} needs a paused loop, but it is running {mode}; call pause() first, then step"
         )
 
+    def waits_for_control(self) -> bool:
+        """Paused with no step left and no ``step_until`` target ahead: sim time can move
+        only after a control (a step, a resume) changes this."""
+        with self.lock:
+            return self.paused and self._step_budget <= 0 and (
+                self._run_until_ns is None
+                or self._mark_pending
+                or self._now_ns() >= self._run_until_ns
+            )
+
     def allow(self, next_ns: int) -> bool:
         """May sim time move to ``next_ns`` now? If not, :attr:`delay` says how long to wait."""
         with self.lock:

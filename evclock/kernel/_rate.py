@@ -142,6 +142,7 @@ class LoopStats:
         self.recent_lateness_ns: collections.deque[int] = collections.deque(maxlen=_RECENT)
 
     def record(self, lateness_ns: int, missed: int) -> None:
+        """Count one tick, ``lateness_ns`` after its deadline, with ``missed`` periods skipped."""
         self.ticks += 1
         if missed:
             self.missed += missed
@@ -217,6 +218,7 @@ class Rate:
 
     @property
     def policy(self) -> Policy:
+        """What an overrun does: ``"skip"``, ``"catch_up"`` or ``"reset"``."""
         return self._policy
 
     def _deadline(self, index: int) -> int:
@@ -374,6 +376,7 @@ class Timer:
 
     @property
     def period(self) -> Duration:
+        """The time between two calls of the callback."""
         return new_duration(self._period_ns)
 
     @property

@@ -11,10 +11,10 @@ if TYPE_CHECKING:
     from evclock.kernel._clock import SimClock
     from evclock.kernel._jumps import TimeJump
 
-#: ``gate(next_ns)`` is asked before each increment of time when pacing is active (None
-#: otherwise: advance freely); False means "not now": the loop has something to run at the
-#: current time (I/O arrived, a thread called back), so the source must stop and return.
 Gate = Callable[[int], bool] | None
+"""``gate(next_ns)`` is asked before each increment of time when pacing is active (None
+otherwise: advance freely); False means "not now": the loop has something to run at the
+current time (I/O arrived, a thread called back), so the source must stop and return."""
 
 
 class SourceHost(Protocol):
@@ -55,9 +55,13 @@ class SourceHost(Protocol):
         """Whether tasks of ``loop`` are on this host's sim time."""
         ...
 
-    def is_closed(self) -> bool: ...
+    def is_closed(self) -> bool:
+        """Whether the host (loop or driver) is closed."""
+        ...
 
-    def call_exception_handler(self, context: dict[str, Any]) -> None: ...
+    def call_exception_handler(self, context: dict[str, Any]) -> None:
+        """Report an error the source caught (a step hook that raised), as asyncio does."""
+        ...
 
 
 class TimeSource(abc.ABC):

@@ -33,6 +33,7 @@ class VirtualTimeSource(TimeSource):
         self.now_ns = start
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
+        """Jump straight to ``target_ns`` (if ``gate`` allows it); return the new time."""
         if target_ns is not None and target_ns > self.now_ns and (gate is None or gate(target_ns)):
             self.now_ns = target_ns
         return self.now_ns
@@ -61,4 +62,5 @@ class VirtualTimeSource(TimeSource):
         self.now_ns = new_ns
 
     def describe(self) -> str:
+        """``"virtual time"``, for messages."""
         return "virtual time"

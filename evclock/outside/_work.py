@@ -185,8 +185,11 @@ class OutsideWork:
 
     # ------------------------------------------------------------- questions
 
-    def holder(self) -> str | None:
+    def holder(self, *, timed_waits_hold: bool = True) -> str | None:
         """Whether sim time is held now: EXACT, INFERRED, or None.
+
+        ``timed_waits_hold=False`` (the loop is paused: sim time moves only by steps, so a
+        thread's wall-time timeout is no event on it): threads in timed waits do not hold.
 
         When held only by threads in timed waits of known length (``Event.wait(3)``,
         ``time.sleep(1)``), :attr:`horizon_ns` says how far sim time may still move: as on
@@ -224,6 +227,8 @@ class OutsideWork:
             jobs = self._job_threads()
             for thread, state in threads:
                 if state not in HOLDING_STATES or thread.ident in jobs:
+                    continue
+                if state is ThreadState.TIMED and not timed_waits_hold:
                     continue
                 deadline = wait_deadline(thread) if state is ThreadState.TIMED else None
                 if deadline is None:

@@ -190,6 +190,8 @@ class RemoteClockSource(TimeSource):
     # ------------------------------------------------------------ TimeSource
 
     def attach(self, loop: Any) -> None:
+        """Called once by the :class:`~evclock.SimEventLoop` this source drives; any other
+        host (a ``SimDriver``) is refused with :class:`~evclock.SimDriverError`."""
         from evclock.hosts._loop import SimEventLoop
 
         # The host is the kernel of the loop this source drives; the socket is served by
@@ -217,6 +219,7 @@ class RemoteClockSource(TimeSource):
 
     @property
     def now_ns(self) -> int:
+        """The server's sim time as last granted or announced, in integer nanoseconds."""
         return self._now
 
     @property
@@ -225,6 +228,7 @@ class RemoteClockSource(TimeSource):
         return str(self._address)
 
     def describe(self) -> str:
+        """The source for messages: the server's address, the mode and the name."""
         return f"the clock server at {self._address} ({self.mode} participant {self.name!r})"
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:

@@ -13,12 +13,12 @@ from typing import Any, Final
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
 
-#: Where rmw_zenoh's router listens by default (``ros2 run rmw_zenoh_cpp rmw_zenohd``), on
-#: loopback: a ROS 2 graph on this machine is reached through it.
 DEFAULT_CONNECT: Final = ("tcp/127.0.0.1:7447",)
-#: Where evclock's session accepts direct peer connections (rmw_zenoh peers connect to each
-#: other after the router introduced them); port 0 = any free port.
+"""Where rmw_zenoh's router listens by default (``ros2 run rmw_zenoh_cpp rmw_zenohd``), on
+loopback: a ROS 2 graph on this machine is reached through it."""
 DEFAULT_LISTEN: Final = ("tcp/127.0.0.1:0",)
+"""Where evclock's session accepts direct peer connections (rmw_zenoh peers connect to each
+other after the router introduced them); port 0 = any free port."""
 #: How often a peer retries an endpoint that is not up yet (wall ms): first, then at most.
 _RETRY_INIT_MS: Final = 100
 _RETRY_MAX_MS: Final = 1000

@@ -48,8 +48,8 @@ from evclock.time._time import SIM, Time, new_time
 
 logger = logging.getLogger("evclock.ros2")
 
-#: Default wall seconds without a ``/clock`` sample before the source gives up (ClockLostError).
 DEFAULT_SILENCE_TIMEOUT: Final = 10.0
+"""Default wall seconds without a ``/clock`` sample before the source gives up (ClockLostError)."""
 #: Samples buffered between the Zenoh network and the reader thread, and between the reader
 #: thread and the loop (the oldest are dropped beyond that; only the newest time matters).
 _CHANNEL_CAPACITY: Final = 1024
@@ -166,6 +166,7 @@ class Ros2ClockSource(TimeSource):
 
     @property
     def now_ns(self) -> int:
+        """The followed time in integer nanoseconds."""
         return self._now
 
     @property
@@ -184,6 +185,7 @@ class Ros2ClockSource(TimeSource):
         return self._key_expr
 
     def describe(self) -> str:
+        """The source for messages: topic, domain and endpoints."""
         return (
             f"ROS 2 {self._topic} (domain {self._domain_id}) over Zenoh via "
             f"{', '.join(self._connect) or 'listen only'}"
@@ -192,6 +194,8 @@ class Ros2ClockSource(TimeSource):
     # ------------------------------------------------------------------ the contract
 
     def attach(self, loop: Any) -> None:
+        """Called once by the :class:`~evclock.SimEventLoop` this source drives; a
+        ``SimDriver`` is refused with :class:`~evclock.SimDriverError`."""
         from evclock._errors import SimDriverError
         from evclock.hosts._loop import SimEventLoop
 
@@ -207,6 +211,8 @@ class Ros2ClockSource(TimeSource):
         self._loop = event_loop
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
+        """Never blocks: move toward the newest ``/clock`` received, never past it nor past
+        ``target_ns``, and return the new time (the same time when nothing new arrived)."""
         self._loop_wakeable = True  # from now on the loop is running: wake it on arrival
         jumped = self._drain()
         if self._error is not None:

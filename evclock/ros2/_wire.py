@@ -27,16 +27,17 @@ from typing import Final, Literal
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, Ros2MessageError
 
-#: ROS 2 type and its DDS-mangled name as rmw_zenoh writes it into key expressions.
 CLOCK_TYPE: Final = "rosgraph_msgs/msg/Clock"
+"""The ROS 2 type of ``/clock`` messages."""
 CLOCK_DDS_TYPE: Final = "rosgraph_msgs::msg::dds_::Clock_"
-#: RIHS01 hash of rosgraph_msgs/msg/Clock (identical for Humble, Jazzy and Kilted definitions;
-#: the tests recompute it with an independent implementation).
+""":data:`CLOCK_TYPE`'s DDS-mangled name, as rmw_zenoh writes it into key expressions."""
 CLOCK_TYPE_HASH: Final = "RIHS01_692f7a66e93a3c83e71765d033b60349ba68023a8c689a79e48078bcb5c58564"
-#: What rmw_zenoh_cpp on Humble writes where later releases put the type hash.
+"""RIHS01 hash of rosgraph_msgs/msg/Clock (identical for Humble, Jazzy and Kilted definitions;
+the tests recompute it with an independent implementation)."""
 HUMBLE_TYPE_HASH: Final = "TypeHashNotSupported"
-#: The environment variable ROS reads its domain id from.
+"""What rmw_zenoh_cpp on Humble writes where later releases put the type hash."""
 ENV_ROS_DOMAIN_ID: Final = "ROS_DOMAIN_ID"
+"""The environment variable ROS reads its domain id from."""
 #: The largest domain id ROS 2 documents as valid.
 MAX_DOMAIN_ID: Final = 232
 
@@ -44,10 +45,11 @@ _NS_PER_S: Final = 1_000_000_000
 _CDR_BE: Final = b"\x00\x00"
 _CDR_LE: Final = b"\x00\x01"
 _GID_SIZE: Final = 16
-# rclcpp's ClockQoS (sensor-data profile with depth 1: BEST_EFFORT, VOLATILE, KEEP_LAST 1) as
-# rmw_zenoh encodes it: only the fields that differ from its defaults (RELIABLE, VOLATILE,
-# KEEP_LAST 42, infinite deadline/lifespan/lease, AUTOMATIC liveliness) are written.
 CLOCK_QOS: Final = "2::,1:,:,:,,"
+"""rclcpp's ClockQoS (sensor-data profile with depth 1: BEST_EFFORT, VOLATILE, KEEP_LAST 1) as
+rmw_zenoh encodes it in liveliness tokens: only the fields that differ from its defaults
+(RELIABLE, VOLATILE, KEEP_LAST 42, infinite deadline/lifespan/lease, AUTOMATIC liveliness) are
+written."""
 
 _NAME_SEGMENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
@@ -65,7 +67,6 @@ class WireFormat:
     releases: str
 
 
-#: The wire variants, by name. ``jazzy`` (the default) is also what Kilted and Rolling speak.
 WIRE_FORMATS: Final[dict[str, WireFormat]] = {
     "jazzy": WireFormat(
         "jazzy",
@@ -81,7 +82,9 @@ WIRE_FORMATS: Final[dict[str, WireFormat]] = {
     ),
     "humble-keyed": WireFormat("humble-keyed", HUMBLE_TYPE_HASH, "keyed", "Humble 0.1.0-0.1.1"),
 }
+"""The wire variants, by name. ``jazzy`` (the default) is also what Kilted and Rolling speak."""
 DEFAULT_WIRE_FORMAT: Final = "jazzy"
+"""The wire variant a publisher writes unless told (``--ros2-wire-format``, ``wire_format=``)."""
 
 
 def wire_format(name: object) -> WireFormat:

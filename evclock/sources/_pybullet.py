@@ -1,9 +1,10 @@
 """PyBullet as the owner of simulation time: a thin adapter over :class:`SteppingTimeSource`.
 
 PyBullet keeps no time counter, so evclock counts the steps and derives the time exactly
-from integers (DESIGN section 2; the step clock, hooks, waits and snapshots-as-jumps live in
-``_stepping.py``). ``pybullet`` is imported lazily, when the first source is created:
-``import evclock`` alone does not load it (nor numpy, nor its banner on stderr).
+from integers (docs/architecture.md, "Time and the step clock"; the step clock, hooks, waits
+and snapshots-as-jumps live in ``_stepping.py``). ``pybullet`` is imported lazily, when the
+first source is created: ``import evclock`` alone does not load it (nor numpy, nor its banner
+on stderr).
 """
 
 from __future__ import annotations
@@ -255,7 +256,7 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
         """``p.resetSimulation`` on every client, and move sim time to ``start`` (default 0).
 
         The world is emptied (bodies, constraints, gravity; PyBullet keeps the time step).
-        Moving time is a jump (DESIGN section 7): jump handlers run, pending
+        Moving time is a jump (docs/architecture.md, "Time jumps"): jump handlers run, pending
         ``clock.sleep`` calls and :meth:`wait_until` waits raise :class:`ClockJumpedError`, rates
         and timers re-anchor. Returns the jump, or None when time did not move.
         """
@@ -324,6 +325,7 @@ class PyBulletTimeSource(SteppingTimeSource[tuple[int, ...]]):
     # --------------------------------------------------------------- the rest
 
     def describe(self) -> str:
+        """The source for messages: its time step and PyBullet client ids."""
         clients = ", ".join(str(c) for c in self._clients)
         plural = "s" if len(self._clients) > 1 else ""
         dt = format_seconds(Fraction(self._num, self._den) / _NS_PER_S)

@@ -238,6 +238,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
 
     @property
     def now_ns(self) -> int:
+        """Current sim time in integer nanoseconds: the time of the last step taken."""
         return self._now
 
     @property
@@ -304,6 +305,9 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
     # --------------------------------------------------------------- stepping
 
     def advance(self, target_ns: int | None, gate: Gate) -> int:
+        """Step the engine in whole steps toward the first step boundary at or after
+        ``target_ns`` (None: one step), asking ``gate`` before each step; return the new time,
+        which may fall short of the target (the kernel then asks again)."""
         now = self._now
         if target_ns is not None and target_ns <= now:
             return now
@@ -598,6 +602,7 @@ class SteppingTimeSource(TimeSource, Generic[_State]):
         return jump
 
     def describe(self) -> str:
+        """The source for messages: its class and time step."""
         return f"{type(self).__name__} (dt={format_seconds(self.time_step_ns / _NS_PER_S)} s)"
 
     def __repr__(self) -> str:

@@ -11,9 +11,9 @@ import pytest
 
 from evclock.testing._options import MARKER
 
-#: The name under which evclock's loop factory is offered to pytest-asyncio:
-#: ``@pytest.mark.asyncio(loop_factories=["evclock"])``.
 EVCLOCK_LOOP_FACTORY_NAME: Final = "evclock"
+"""The name under which evclock's loop factory is offered to pytest-asyncio:
+``@pytest.mark.asyncio(loop_factories=["evclock"])``."""
 
 #: Fixtures whose use opts a test in, like the marker (a module whose ``anyio_backend`` is
 #: evclock's opts in all its anyio tests).

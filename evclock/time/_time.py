@@ -59,8 +59,11 @@ class ClockType(enum.Enum):
 
 
 SIM: Final = ClockType.SIM
+"""Simulation time (:attr:`ClockType.SIM`): the domain of the times of a simulation loop."""
 SYSTEM: Final = ClockType.SYSTEM
+"""Wall-clock time since the Unix epoch (:attr:`ClockType.SYSTEM`)."""
 STEADY: Final = ClockType.STEADY
+"""Monotonic wall time (:attr:`ClockType.STEADY`): the domain of :class:`WallClock` times."""
 
 
 @final

@@ -122,7 +122,7 @@ def run_command(
         Path | None, typer.Option("--json", help="Also write the report as JSON to this file.")
     ] = None,
     record: Annotated[
-        Path | None, typer.Option(help="Record the run to this MCAP file (needs evclock[record]).")
+        Path | None, typer.Option(help="Record the run to this MCAP file (the record extra).")
     ] = None,
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
     serve: Annotated[

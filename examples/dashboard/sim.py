@@ -154,6 +154,9 @@ class SimService:
         #: and the episodes that had them (a series never disappears between two polls).
         self._series: dict[str, None] = {}
         self._last_counts: dict[Rate, tuple[int, int]] = {}
+        #: The loops of episodes that ended since the last sample: their last ticks (or, for a
+        #: short episode, all of them) still go into the next sample, under their names.
+        self._ended_rates: list[Rate] = []
         self._achieved_rtf: float | None = None
         self._steps_before_reset = 0
         self._step_lock = asyncio.Lock()
@@ -253,6 +256,7 @@ class SimService:
                 return  # the physics keeps stepping; the controllers are done
             await clock.sleep(self.config.episode_gap)
             # Reset the world at the current time (no time jump), then load the next one.
+            self._ended_rates.extend(self.current_rates())  # before the next ones replace them
             self._steps_before_reset += self.source.step_index
             self.source.reset_simulation(start=clock.now())
             seed = episode.seed + 1
@@ -316,15 +320,18 @@ class SimService:
         driver = self.driver
         self._achieved_rtf = driver.achieved_rtf()
         counts: dict[Rate, tuple[int, int]] = {}
-        lateness: dict[str, float | None] = {}
-        for rate in self.current_rates():
+        new: dict[str, tuple[int, int]] = {}  # name: ticks, lateness ns since the last sample
+        ended, self._ended_rates = self._ended_rates, []
+        current = self.current_rates()
+        for rate in (*ended, *current):
             stats = rate.stats
             ticks, total = stats.ticks, stats.total_lateness_ns
             before_ticks, before_total = self._last_counts.get(rate, (0, 0))
-            new_ticks = ticks - before_ticks
-            lateness[rate.name] = (total - before_total) / new_ticks / 1e6 if new_ticks else None
+            new_ticks, new_total = new.get(rate.name, (0, 0))
+            new[rate.name] = (new_ticks + ticks - before_ticks, new_total + total - before_total)
             counts[rate] = (ticks, total)
-        self._last_counts = counts
+        self._last_counts = {rate: counts[rate] for rate in current}  # the ended ones are done
+        lateness = {name: ns / n / 1e6 if n else None for name, (n, ns) in new.items()}
         sample = Sample(time.time(), driver.now().seconds, self._achieved_rtf, driver.rtf, lateness)
         self._history.append(sample)
         self._series.update(dict.fromkeys(lateness))

@@ -10,6 +10,7 @@ import selectors
 import signal
 import socket
 import threading
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -147,7 +148,7 @@ def test_a_signal_that_arrives_as_outside_work_ends_is_handled_before_time_moves
         holder = outside.holder
         checks = 0
 
-        def work_that_ends_on_the_second_check() -> str | None:
+        def work_that_ends_on_the_second_check(*, timed_waits_hold: bool = True) -> str | None:
             nonlocal checks
             checks += 1
             if checks == 1:
@@ -558,3 +559,91 @@ def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str)
         (3.0, [1.0, 2.0, 3.0]),
     ]
     assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+
+
+@pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
+@pytest.mark.parametrize("sleeper", ["asyncio.sleep", "clock.sleep"])
+def test_steps_from_an_operator_that_sleeps_between_them_move_virtual_time(
+    via: str, sleeper: str
+) -> None:
+    """The reported case: the operator spaces its steps with ``time.sleep(0.05)``. A thread
+    in a timed wait holds sim time while the loop runs, but a paused loop moves only by
+    steps, so the operator's own sleep must not hold the steps it asked for (it did: time
+    stayed at 0 until resume()). Each step jumps to the next deadline; then time holds."""
+    loop = SimEventLoop(paused=True, stall_timeout=2)
+    woke: list[float] = []
+    three = threading.Event()
+    errors: list[BaseException] = []
+
+    def operate() -> None:
+        try:
+            for _ in range(3):
+                if via == "directly":
+                    loop.step(1)
+                else:
+                    loop.call_soon_threadsafe(loop.step, 1)
+                time.sleep(0.05)  # the operator's own pace: not work for the loop
+            # An operator polls for the effect at its own pace (each poll a timed wait).
+            deadline = time.monotonic() + 5
+            while not three.is_set() and time.monotonic() < deadline:
+                time.sleep(0.05)
+            assert three.is_set(), f"three steps moved sim time to {woke} only"
+            time.sleep(0.05)  # paused, with no step left: nothing more may happen
+        except BaseException as exc:  # reported once the loop stopped
+            errors.append(exc)
+        finally:
+            loop.call_soon_threadsafe(loop.stop)
+
+    async def ticker() -> None:
+        sleep = asyncio.sleep if sleeper == "asyncio.sleep" else evclock.clock().sleep
+        while True:
+            await sleep(1)
+            woke.append(loop.time())
+            if len(woke) == 3:
+                three.set()
+
+    tasks: list[asyncio.Task[None]] = []
+
+    async def main() -> None:
+        tasks.append(asyncio.ensure_future(ticker()))
+        thread = threading.Thread(target=operate, daemon=True)
+        thread.start()
+
+    try:
+        loop.run_until_complete(main())
+        loop.run_forever()  # until the operator stops it
+    finally:
+        for task in asyncio.all_tasks(loop):
+            task.cancel()
+        loop.run_until_complete(asyncio.sleep(0))
+        loop.close()
+    assert errors == []
+    assert woke == [1.0, 2.0, 3.0]
+
+
+def test_a_paused_loop_waits_as_paused_while_a_thread_polls_with_a_timeout() -> None:
+    """A pause outranks a hold: a thread polling with ``time.sleep`` while the loop is
+    paused with no step left does not turn the pause into a StallError after
+    ``stall_timeout`` (the pause is unbounded; a control ends it)."""
+    loop = SimEventLoop(paused=True, stall_timeout=0.2)
+    done = threading.Event()
+
+    def poller() -> None:
+        deadline = time.monotonic() + 0.6  # three stall_timeouts of polling
+        while time.monotonic() < deadline:
+            time.sleep(0.01)
+        loop.call_soon_threadsafe(loop.resume)
+        done.wait(10)
+
+    async def main() -> float:
+        thread = threading.Thread(target=poller, daemon=True)
+        thread.start()
+        await asyncio.sleep(1)
+        done.set()
+        thread.join(10)
+        return loop.time()
+
+    try:
+        assert loop.run_until_complete(main()) == 1.0
+    finally:
+        loop.close()

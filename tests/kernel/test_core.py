@@ -26,7 +26,7 @@ class ScriptedHost:
     def anything_runnable(self) -> bool:
         return self.runnable
 
-    def time_held(self) -> bool:
+    def time_held(self, paused: bool) -> bool:
         return self.held
 
     def could_wake(self) -> bool:
@@ -83,6 +83,27 @@ def test_the_rule_in_order(loop: asyncio.AbstractEventLoop) -> None:
     assert core.take_due() is not None  # the stop mark, due now
     core.stop_at(5)
     assert core.advance() == DUE
+
+
+def test_a_pause_outranks_a_hold_and_a_step_asks_whether_paused(
+    loop: asyncio.AbstractEventLoop,
+) -> None:
+    seen: list[bool] = []
+    core, host = make(loop)
+    host.held = True
+    host.time_held = lambda paused: seen.append(paused) or host.held  # type: ignore[method-assign]
+    core.stop_at(5)
+    core.pacer.pause()
+    assert core.advance() == PACING  # paused, no step left: wait for a control, unbounded
+    assert core.pacing_delay is None
+    assert seen == []  # not even asked: nothing can move before a control
+    core.pacer.step(1)
+    assert core.advance() == HELD  # a step still waits for what holds time...
+    assert seen == [True]  # ...told that the host is paused (timed thread waits do not hold)
+    host.held = False
+    assert core.advance() == MOVED
+    assert core.now_ns == 5
+    assert seen == [True, True]
 
 
 def test_pacing_answers_with_a_wall_delay_instead_of_blocking(

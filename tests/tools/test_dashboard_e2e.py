@@ -18,6 +18,12 @@ import pytest
 # PyBullet has wheels for CPython 3.11 only: elsewhere these tests are skipped (conftest.py
 # makes a missing PyBullet an error on 3.11).
 pytest.importorskip("pybullet", reason="PyBullet is not installed: pip install 'evclock[pybullet]'")
+# The dashboard extra, and Playwright (the test extra) to drive the page: skipped without them.
+pytest.importorskip("starlette", reason="needs evclock[dashboard] (starlette)")
+pytest.importorskip("uvicorn", reason="needs evclock[dashboard] (uvicorn)")
+pytest.importorskip("PIL", reason="needs evclock[dashboard] (Pillow)")
+pytest.importorskip("playwright", reason="needs playwright (evclock[test])")
+
 from playwright.sync_api import Page, expect, sync_playwright
 
 from examples.dashboard import BackgroundServer, DashboardConfig, create_app

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
-from matplotlib.image import imread
-from mcap.reader import make_reader
 from typer.testing import CliRunner
 
 import evclock
@@ -19,6 +18,13 @@ from evclock.tools._plot import PALETTE, RTF_COLOR
 ROOT = Path(__file__).resolve().parents[2]
 SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
 runner = CliRunner()
+#: Tests that need an optional extra skip where it is not installed (the others still run).
+needs_record = pytest.mark.skipif(
+    importlib.util.find_spec("mcap") is None, reason="needs evclock[record] (mcap)"
+)
+needs_plot = pytest.mark.skipif(
+    importlib.util.find_spec("matplotlib") is None, reason="needs evclock[plot] (matplotlib)"
+)
 
 
 @pytest.fixture(scope="module")
@@ -29,7 +35,10 @@ def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, evclock.to
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object]) -> None:
+    from mcap.reader import make_reader
+
     path, _ = recorded
     with path.open("rb") as stream:
         reader = make_reader(stream)
@@ -53,6 +62,7 @@ def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_every_tick_is_recorded_at_its_sim_time(
     recorded: tuple[Path, evclock.tools.RunReport],
 ) -> None:
@@ -82,6 +92,7 @@ def test_every_tick_is_recorded_at_its_sim_time(
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.tools.RunReport]) -> None:
     path, report = recorded
     plain = evclock.tools.run_scenario(SHUTTLE, seed=1)
@@ -93,6 +104,7 @@ def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.tools.R
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_trace_diff_identical_runs_whatever_the_rtf(
     recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
@@ -106,6 +118,7 @@ def test_trace_diff_identical_runs_whatever_the_rtf(
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_trace_diff_names_the_first_divergence(
     recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
@@ -128,6 +141,7 @@ def test_trace_diff_names_the_first_divergence(
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_trace_diff_reports_a_shorter_run(
     recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
@@ -149,6 +163,7 @@ def test_trace_diff_reports_a_shorter_run(
     assert divergence.detail == "b ends here; the other goes on"
 
 
+@needs_record
 def test_reading_something_else_fails_clearly(tmp_path: Path) -> None:
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"not an mcap file at all")
@@ -183,9 +198,13 @@ def _pixels_of(image: np.ndarray, color: str) -> int:
 
 
 @pytest.mark.pybullet
+@needs_record
+@needs_plot
 def test_plot_draws_each_loop_and_the_rtf(
     recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
 ) -> None:
+    from matplotlib.image import imread
+
     path, _ = recorded
     png = tmp_path / "run.png"
     result = runner.invoke(app, ["plot", str(path), "-o", str(png)])
@@ -199,6 +218,8 @@ def test_plot_draws_each_loop_and_the_rtf(
     assert _pixels_of(image, PALETTE[2]) == 0  # no third loop
 
 
+@needs_record
+@needs_plot
 def test_plot_refuses_a_recording_without_loops(tmp_path: Path) -> None:
     empty = tmp_path / "empty.mcap"
     from evclock.tools._record import Recorder
@@ -210,6 +231,7 @@ def test_plot_refuses_a_recording_without_loops(tmp_path: Path) -> None:
 
 
 @pytest.mark.pybullet
+@needs_record
 def test_recording_needs_sim_time(tmp_path: Path) -> None:
     result = runner.invoke(
         app, ["run", SHUTTLE, "--wall", "--record", str(tmp_path / "w.mcap"), "--quiet"]

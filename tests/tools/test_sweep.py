@@ -7,6 +7,7 @@ Every run is a real process with its own physics client. Wall-clock waits are bo
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import io
 import json
 import os
@@ -18,7 +19,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from matplotlib.image import imread
 from rich.console import Console
 from typer.testing import CliRunner
 
@@ -35,6 +35,11 @@ SHUTTLE = str(ROOT / "examples" / "shuttle_scenario.py")
 #: output instead of ending the whole session.
 TIMEOUT = 240
 runner = CliRunner()
+#: Tests that need an optional extra skip where it is not installed (the others still run).
+needs_plot = pytest.mark.skipif(
+    importlib.util.find_spec("matplotlib") is None, reason="needs evclock[plot] (matplotlib)"
+)
+needs_ray = pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="needs evclock[ray]")
 
 FRAGILE = """\
 import os
@@ -121,7 +126,10 @@ def test_bad_sweep_input_exits_2(args: list[str], message: str) -> None:
 
 
 @pytest.mark.pybullet
+@needs_plot
 def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
+    from matplotlib.image import imread
+
     out = tmp_path / "sweep.json"
     png = tmp_path / "sweep.png"
     result = runner.invoke(
@@ -238,6 +246,7 @@ def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_pat
 
 
 @pytest.mark.pybullet
+@needs_ray
 def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "ray.json"
     proc = subprocess.run(
