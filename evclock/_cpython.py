@@ -48,13 +48,20 @@ running_loop: Callable[[], asyncio.AbstractEventLoop | None] = asyncio._get_runn
 #: would take the general timer path (slower, same behaviour); the fan-out benchmark shows it.
 SET_RESULT_UNLESS_CANCELLED: Final[Callable[..., None]] = futures._set_result_unless_cancelled  # type: ignore[attr-defined]
 
-#: ``asyncio.base_events._format_handle``: how asyncio names a callback in its slow-callback
-#: warning. Why: the loop's debug mode logs the same message as stock asyncio (tools filter
-#: on it). If it went away: the warning would name the handle with ``repr``.
-format_handle: Callable[[asyncio.Handle], str] = base_events._format_handle  # type: ignore[attr-defined]
 
-#: ``asyncio.base_events.logger``: asyncio's own logger (public by use, not by name).
-asyncio_logger = base_events.logger  # type: ignore[attr-defined]
+def log_slow_callback(handle: asyncio.Handle, seconds: float) -> None:
+    """Debug mode's slow-callback warning, exactly as ``BaseEventLoop._run_once`` logs it:
+    on asyncio's own logger (``asyncio.base_events.logger``) with its message and
+    ``asyncio.base_events._format_handle``, so that tools filtering on either, and tests
+    patching the logger (CPython's ``test_log_slow_callbacks``), see it. Both are looked up
+    at call time for that reason. If they went away: log on ``logging.getLogger("asyncio")``
+    with ``repr(handle)``."""
+    base_events.logger.warning(  # type: ignore[attr-defined]
+        "Executing %s took %.3f seconds",
+        base_events._format_handle(handle),  # type: ignore[attr-defined]
+        seconds,
+    )
+
 
 #: The code object of ``BaseEventLoop._run_once``: a thread whose frames are in it runs a
 #: stock asyncio loop, whose selector timeout is its next timer (a real delay, which holds

@@ -2,7 +2,7 @@
 
 Run it with ``python examples/outside_world.py``. Each part waits for something outside the
 loop under a sim-time timeout, as a real program does on stock asyncio; the timeouts do not
-fire, because outside work holds sim time while it runs (README: "Work outside the loop"):
+fire, because outside work holds sim time while it runs (docs/guides/outside.md):
 
 1. a child process that works 0.2 s of wall time, awaited with ``wait_for(..., 10)``;
 2. a thread that waits 50 ms (``Event.wait(0.05)``) before handing over a result;

@@ -9,7 +9,7 @@ Run it with ``python examples/pacing.py``. A 10 Hz controller runs on virtual ti
    The controls are called directly from that thread: they are thread-safe and wake the
    loop. The operator waits for each step on a ``concurrent.futures.Future``: such a wait
    never holds sim time, whatever its timeout (a bare ``Event.wait(timeout)`` would: it
-   may be a delay, see the README's "Work outside the loop").
+   may be a delay, see docs/guides/outside.md).
 
 Sim times are exact and the same on every run; the wall-time figures depend on the machine.
 """

@@ -35,9 +35,8 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
 from evclock._cpython import (
-    asyncio_logger,
     fd_to_key,
-    format_handle,
+    log_slow_callback,
     running_loop,
     thread_limbo,
     thread_registry,
@@ -284,6 +283,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._sim_clock: SimClock | None = None
 
     def create_future(self) -> asyncio.Future[Any]:
+        """A future on this loop (made without the ``loop=`` keyword when it runs here)."""
         # asyncio.sleep, wait_for, ...: a future on this loop, as BaseEventLoop's, made
         # without the loop= keyword (a dict on every call) when this loop runs here.
         if _running_loop() is self:
@@ -325,6 +325,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         *args: *_Ts,
         context: contextvars.Context | None = None,
     ) -> asyncio.TimerHandle:
+        """Schedule ``callback(*args)`` ``delay`` seconds of sim time from now (asyncio's
+        contract, in exact integer nanoseconds; FIFO among callbacks due at one instant)."""
         # Hot path (every asyncio.sleep and timeout): one frame, no call_at hop (measured
         # with benchmarks/instructions.py).
         core = self._core
@@ -369,6 +371,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         *args: *_Ts,
         context: contextvars.Context | None = None,
     ) -> asyncio.TimerHandle:
+        """Schedule ``callback(*args)`` at sim time ``when`` (seconds, the loop's ``time()``);
+        a time beyond sim time's range never fires, as an unbounded timer on stock asyncio."""
         if when is None:
             raise InvalidTypeError("when cannot be None")
         if when != when or when == -math.inf:
@@ -489,8 +493,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             handle._run()
             dt = time.monotonic() - t0
             if dt >= self.slow_callback_duration:
-                # asyncio's own logger and message (wall seconds), as tools filter on both.
-                asyncio_logger.warning("Executing %s took %.3f seconds", format_handle(handle), dt)
+                log_slow_callback(handle, dt)  # asyncio's own logger and message
         finally:
             self._current_handle = None
             # Drop the handle with this frame, as asyncio's _run_once does ("handle = None"):
@@ -746,6 +749,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def run_in_executor(  # type: ignore[override]
         self, executor: concurrent.futures.Executor | None, func: Callable[..., _T], *args: Any
     ) -> asyncio.Future[_T]:
+        """Run ``func(*args)`` in ``executor`` (the default one for None); sim time is held
+        while the job is queued or runs, and until its result reaches the loop."""
         self._check_closed()
         if self._debug:
             self._check_callback(func, "run_in_executor")  # on func, not on our wrapper
@@ -768,15 +773,19 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     def add_signal_handler(
         self, sig: int, callback: Callable[[Unpack[_Ts]], object], *args: *_Ts
     ) -> None:
+        """As asyncio's; the loop polls its self-pipe from now on, as signals arrive there."""
         super().add_signal_handler(sig, callback, *args)
         self._quiet_fds = 0  # signals arrive through the self-pipe: poll it
 
     def remove_signal_handler(self, sig: int) -> bool:
+        """As asyncio's; returns whether a handler was removed."""
         removed: bool = super().remove_signal_handler(sig)
         self._quiet_fds = 0 if self._signal_handlers else 1  # type: ignore[attr-defined]
         return removed
 
     async def shutdown_default_executor(self, *args: Any, **kwargs: Any) -> None:
+        """As asyncio's, holding sim time meanwhile (3.12+ wraps it in a timeout that must
+        not fire in sim time)."""
         # Hold sim time: 3.12+ wraps this in a 300 s timeout that must not fire in sim time.
         with self.hold_time():
             await super().shutdown_default_executor(*args, **kwargs)
@@ -820,8 +829,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) changes the
     # pacer there and hands the loop its reaction, which wakes a pacing or pause wait
-    # (DESIGN 5; the mechanism is PacingControls', shared with SimDriver). Until that
-    # callback ran, the loop does not advance: it runs what is ready first.
+    # (docs/architecture.md, "Pacing"; the mechanism is PacingControls', shared with
+    # SimDriver). Until that callback ran, the loop does not advance: it runs what is ready
+    # first.
 
     def _on_host_thread(self) -> bool:
         return self._thread_id is None or threading.get_ident() == self._thread_id
@@ -844,6 +854,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     # ------------------------------------------------------------- closing
 
     def close(self) -> None:
+        """Close the loop (as asyncio's) and its time source; later sim-time waits raise
+        :class:`LoopClosedError`."""
         if self.is_closed():
             return
         self._core.future_loop = None  # waits now go to future_factory, which refuses them

@@ -204,8 +204,8 @@ class WallClock(Clock):
     loop (``loop.add_reader``): no millisecond rounding and no timer slack. It finishes the
     last ``spin_margin`` by yielding to the loop (``asyncio.sleep(0)``) until the clock
     reads the deadline: other tasks keep running, but it costs CPU; a larger margin absorbs
-    more wake-up latency for more CPU (the README's "Precise wall time" shows measured
-    trade-offs, ``benchmarks/wall_rate_1khz.py`` measures them on your machine). A precise
+    more wake-up latency for more CPU (docs/performance.md, "Precise wall time", shows measured
+    trade-offs; ``benchmarks/wall_rate_1khz.py`` measures them on your machine). A precise
     wait never returns before the clock reads the deadline. Where there is no timerfd
     (other systems, loops without ``add_reader``) the loop's timer is used, with its
     granularity; a margin above it restores precision at the cost of spinning the whole

@@ -6,7 +6,7 @@ and asks it one question when nothing is runnable: :meth:`SimCore.advance`. The 
 one of the outcomes below; the host only supplies *how to wait* for each and answers the
 kernel's questions about the world around it (:class:`CoreHost`).
 
-The rule (DESIGN section 4), in order:
+The rule (docs/architecture.md, "The advancement rule"), in order:
 
 1. something due at the current time, or a task runnable         -> ``DUE``: run it
 2. outside work holds sim time (executor jobs, holds, threads)    -> ``HELD``: wait for it

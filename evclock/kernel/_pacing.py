@@ -200,10 +200,14 @@ class Pacer:
         """Paused with no step left and no ``step_until`` target ahead: sim time can move
         only after a control (a step, a resume) changes this."""
         with self.lock:
-            return self.paused and self._step_budget <= 0 and (
-                self._run_until_ns is None
-                or self._mark_pending
-                or self._now_ns() >= self._run_until_ns
+            return (
+                self.paused
+                and self._step_budget <= 0
+                and (
+                    self._run_until_ns is None
+                    or self._mark_pending
+                    or self._now_ns() >= self._run_until_ns
+                )
             )
 
     def allow(self, next_ns: int) -> bool:

@@ -1,4 +1,6 @@
-"""What is each thread outside the loop doing right now? (DESIGN section 11)
+"""What is each thread outside the loop doing right now?
+
+The rule is stated in docs/architecture.md, "Work outside the loop".
 
 Sim time must not move while another thread is about to hand the loop something, and must
 move while every other thread only waits for the loop. This module classifies a thread into

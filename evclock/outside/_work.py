@@ -1,4 +1,6 @@
-"""The world outside the loop: what holds sim time, and what can wake the loop (DESIGN 11).
+"""The world outside the loop: what holds sim time, and what can wake the loop.
+
+The rule is stated in docs/architecture.md, "Work outside the loop".
 
 One :class:`OutsideWork` per :class:`~evclock.SimEventLoop` answers the two questions the
 loop asks whenever nothing is runnable at the current sim time:

@@ -63,7 +63,7 @@ class WireFormat:
     type_hash: str
     #: ``"compact"``: int64, int64, GID; ``"keyed"``: each preceded by its field name.
     attachment: Literal["compact", "keyed"]
-    #: The rmw_zenoh_cpp releases that speak it (for messages and the README).
+    #: The rmw_zenoh_cpp releases that speak it (for messages and the docs).
     releases: str
 
 

@@ -42,10 +42,10 @@ from evclock.tools._scenarios import (
 def list_scenarios() -> None:
     """List the registered scenarios (entry-point group evclock.scenarios).
 
-    A scenario whose extra is not installed is listed with what it needs, and a note on stderr
-    gives the command that installs it (exit 0: nothing is broken). A registration that cannot
-    be imported for another reason is listed as broken, its error printed, and the exit status
-    is 2; every other scenario is still listed.
+    A scenario whose extra is not installed is listed with what it needs,
+    and a note on stderr gives the command that installs it (exit status 0).
+    A registration that cannot be imported for another reason is listed as
+    broken, with its error; the exit status is 2, the others are listed.
     """
     table = Table(title="scenarios")
     table.add_column("name")
@@ -142,7 +142,11 @@ def run_command(
     ros2_connect: ros2_cli.Ros2Connect = None,
     ros2_listen: ros2_cli.Ros2Listen = None,
 ) -> None:
-    """Run a scenario with its controllers on evclock time."""
+    """Run a scenario with its controllers on evclock time.
+
+    Exit status: 0 the mission succeeded, 1 it failed, 2 bad input, 3 cut
+    short by --until before the mission ended (no verdict).
+    """
     console = Console()
     try:
         pace = parse_rtf(rtf)

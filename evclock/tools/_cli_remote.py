@@ -225,7 +225,11 @@ def control_command(
     ] = None,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
-    """Run a scenario's controllers in lockstep with a simulation served by another process."""
+    """Run a scenario's controllers in lockstep with a simulation served by another process.
+
+    Exit status: 0 the mission succeeded, 1 it failed, 2 bad input, 3 cut
+    short by --until before the mission ended (no verdict).
+    """
     from rich.console import Console
 
     from evclock.tools._cli_app import exit_code, print_error, render_report

@@ -32,7 +32,10 @@ def diff_command(
     a: Annotated[Path, typer.Argument(help="A recording (evclock run ... --record a.mcap).")],
     b: Annotated[Path, typer.Argument(help="Another recording to compare with.")],
 ) -> None:
-    """Print the first divergence of two recorded runs (sim time, channel, field)."""
+    """Print the first divergence of two recorded runs (sim time, channel, field).
+
+    Exit status: 0 the runs are identical, 1 they diverge, 2 bad input.
+    """
     from evclock.tools._trace import first_divergence, read_trace
 
     console = Console(highlight=False)

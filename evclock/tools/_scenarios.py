@@ -70,8 +70,8 @@ def _check_scenario_class(obj: object, what: str) -> type[Any]:
     if missing:
         raise InvalidTypeError(
             f"{what} ({obj.__module__}.{obj.__qualname__}) is not a scenario: it lacks "
-            f"{', '.join(missing)}; subclass evclock_sims.Scenario (see the README, "
-            "'Writing a scenario')"
+            f"{', '.join(missing)}; subclass evclock_sims.Scenario (see the docs, "
+            "guides/scenarios.md, 'Writing a scenario')"
         )
     abstract_methods = getattr(obj, "__abstractmethods__", None)
     if abstract_methods:

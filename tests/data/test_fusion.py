@@ -84,9 +84,9 @@ def test_fusion_is_the_same_whatever_the_pace() -> None:
     assert first.stamps == again.stamps
 
 
-def test_readme_snippet_runs_as_written() -> None:
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("## Stamped data and sensor synchronisation") :]
+def test_docs_snippet_runs_as_written() -> None:
+    text = (ROOT / "docs" / "guides" / "stamped-data.md").read_text()
+    section = text[text.index("# Stamped data and sync") :]
     match = re.search(r"```python\n(.*?)```", section, re.S)
     assert match is not None
     proc = subprocess.run(

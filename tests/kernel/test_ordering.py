@@ -361,7 +361,7 @@ async def _all_due_at_one_instant(clock: evclock.Clock) -> list[str]:
 
 
 def test_at_one_instant_callbacks_run_before_the_tasks_resumed_there() -> None:
-    """What the README says of one instant: the plain callbacks due at t (call_at,
+    """What the docs say of one instant: the plain callbacks due at t (call_at,
     call_later) run before the tasks resumed at t (asyncio.sleep, clock.sleep), each group
     in scheduling order, with clock.timer callbacks among the tasks. The grouping is stock
     asyncio's (checked on ``asyncio.new_event_loop()`` on instant time); the order within a

@@ -1,4 +1,5 @@
-"""Pacing, pause and step (DESIGN section 5), per physics step with PyBulletTimeSource.
+"""Pacing, pause and step, per physics step with PyBulletTimeSource (docs/architecture.md,
+"Pacing").
 
 No test measures wall time. The loop takes a fake wall clock (``wall=``) and a selector
 whose ``select(timeout)`` lets ``timeout`` seconds of that fake clock pass instead of

@@ -1,6 +1,6 @@
-"""The world outside the loop: subprocesses, signals, threads and I/O (README "Work outside
-the loop"). Each case behaves as on stock asyncio - same results, no false timeout, no false
-deadlock, no hang - only on sim time. Every wait here is bounded."""
+"""The world outside the loop: subprocesses, signals, threads and I/O
+(docs/guides/outside.md). Each case behaves as on stock asyncio - same results, no false
+timeout, no false deadlock, no hang - only on sim time. Every wait here is bounded."""
 
 from __future__ import annotations
 

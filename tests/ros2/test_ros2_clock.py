@@ -316,7 +316,7 @@ def test_follower_timers_sleeps_and_timeouts_follow_clock(endpoint: str, outside
 
         feed(2_500_000_000)
         watcher = threading.Thread(target=watch, daemon=True)
-        # It polls with a timeout, which holds sim time (README: work outside the loop);
+        # It polls with a timeout, which holds sim time (docs/guides/outside.md);
         # it only observes the source: declare it one of the test's helpers.
         mark_internal(watcher)
         watcher.start()
