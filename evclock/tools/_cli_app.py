@@ -111,7 +111,15 @@ def _format_value(value: object) -> str:
 
 
 def render_report(report: RunReport, console: Console) -> None:
-    """Print the per-loop table, the scenario summary and the verdict."""
+    """Print which evclock ran what, the per-loop table, the scenario summary and the
+    verdict."""
+    console.print(
+        f"evclock {report.evclock_version}: {report.scenario}, seed {report.seed}, "
+        f"{report.mode} time",
+        soft_wrap=True,
+        highlight=False,
+        markup=False,
+    )
     if report.setup_output:
         console.print(
             f"[dim]the physics engine printed while loading the world: "

@@ -77,6 +77,8 @@ class RunReport:
     """What the physics engine printed while the world was set up (deduplicated, counted)."""
     stamps: list[dict[str, Any]] = dataclasses.field(default_factory=list)
     """Stamp diagnostics the scenario used (see evclock.data._diagnostics), if any."""
+    evclock_version: str = dataclasses.field(default_factory=lambda: _installed_version())
+    """The evclock that made the run (its distribution's version)."""
 
     @property
     def verdict(self) -> str:
@@ -92,6 +94,12 @@ class RunReport:
         data["until_s"] = _jsonable(self.until_s)
         data["verdict"] = self.verdict
         return data
+
+
+def _installed_version() -> str:
+    from importlib.metadata import version
+
+    return version("evclock")
 
 
 def _jsonable(value: object) -> object:

@@ -192,6 +192,17 @@ def test_engine_chatter_is_collected_not_printed_through_the_bar() -> None:
     assert report.setup_output[0].startswith("6x No inertial data for link")
 
 
+@pytest.mark.pybullet
+def test_the_report_starts_with_the_evclock_that_ran_it(tmp_path: Path) -> None:
+    out = tmp_path / "report.json"
+    result = CliRunner().invoke(
+        app, ["run", "cartpole", "--until", "0.2", "--seed", "3", "--quiet", "--json", str(out)]
+    )
+    first = result.output.splitlines()[0]
+    assert first == f"evclock {evclock.__version__}: cartpole, seed 3, sim time"
+    assert json.loads(out.read_text())["evclock_version"] == evclock.__version__
+
+
 def test_errors_show_their_public_name() -> None:
     assert evclock.InvalidArgumentError.__module__ == "evclock"
     assert repr(evclock.InvalidArgumentError("x")) == "InvalidArgumentError('x')"
