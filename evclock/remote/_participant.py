@@ -469,7 +469,7 @@ class RemoteClockSource(TimeSource):
         if not data:
             self._lose(self._closed_by_server())
             return
-        if len(data) == proto.STAMP_SIZE and self._reader.between_frames:
+        if len(data) == proto.STAMP_SIZE and not self._reader.pending:
             length, kind, t_ns = proto.unpack_stamp(data)
             if (
                 kind == proto.GRANT

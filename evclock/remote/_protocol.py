@@ -182,19 +182,21 @@ def reply(call_id: int, ok: bool, data: bytes) -> bytes:
 class Reader:
     """Splits a byte stream into ``(kind, payload)`` frames."""
 
-    __slots__ = ("_buf",)
+    __slots__ = ("pending",)
 
     def __init__(self) -> None:
-        self._buf = bytearray()
+        #: The bytes of a partial frame received so far: empty between frames (read as a
+        #: plain attribute on every lockstep round, where a property would cost a call).
+        self.pending = bytearray()
 
     @property
     def between_frames(self) -> bool:
         """No partial frame is buffered: the next byte received starts a frame."""
-        return not self._buf
+        return not self.pending
 
     def feed(self, data: bytes) -> list[tuple[int, bytes]]:
         """Append received bytes; return every frame now complete, in order."""
-        buf = self._buf
+        buf = self.pending
         if not buf and len(data) >= 5:  # the hot path: exactly one whole frame (a GRANT, a DONE)
             length, kind = _HEADER.unpack_from(data)
             if len(data) == 4 + length and 0 < length <= MAX_FRAME:

@@ -178,6 +178,8 @@ class ClockServer:
         except (TypeError, ValueError) as exc:
             raise InvalidArgumentError(f"info must be JSON-serialisable: {exc}") from None
         self._loop = loop
+        # Its kernel (SimClock.core): sim time read as a plain attribute on every round.
+        self._kernel = loop.clock.core
         self._policy = on_fault
         self._step_timeout = None if step_timeout is None else float(step_timeout)
         self._token = token
@@ -262,7 +264,7 @@ class ClockServer:
         if not isinstance(data, bytes | bytearray | memoryview):
             raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
         proto.subscribe(topic)
-        entry = ("simulation", self._loop.now_ns, topic, bytes(data))
+        entry = ("simulation", self._kernel.now_ns, topic, bytes(data))
         if self._working:
             self._outbox.append(entry)
             self._round_has_data = True
@@ -403,7 +405,7 @@ class ClockServer:
         if not data:
             self._lost(peer, "closed its connection without leaving (killed or crashed)")
             return
-        if len(data) == proto.DONE_SIZE and peer.reader.between_frames and peer.name:
+        if len(data) == proto.DONE_SIZE and not peer.reader.pending and peer.name:
             length, kind, t_ns, next_ns = proto.unpack_done(data)
             if kind == proto.DONE and length == proto.DONE_SIZE - 4:  # a round's DONE alone
                 try:
@@ -440,11 +442,11 @@ class ClockServer:
                 peer.outbox.append((stamp, topic, data))
                 self._round_has_data = True
             elif self._working:
-                self._outbox.append((peer.name, self._loop.now_ns, topic, data))
+                self._outbox.append((peer.name, self._kernel.now_ns, topic, data))
                 self._round_has_data = True
             else:
                 regrant: list[_Peer] = []
-                self._route(peer.name, self._loop.now_ns, topic, data, regrant)
+                self._route(peer.name, self._kernel.now_ns, topic, data, regrant)
                 self._grant_all(regrant)
         elif kind == proto.CALL:
             self._on_call(peer, *proto.parse_call(payload))
@@ -487,7 +489,7 @@ class ClockServer:
                     return
                 replaced = other
         self._pending.remove(peer)
-        now = self._loop.now_ns
+        now = self._kernel.now_ns
         peer.name = name
         peer.mode = mode
         self._send(peer, proto.welcome(now, self._info))
@@ -550,7 +552,7 @@ class ClockServer:
         _, peers = self._due.pop(t_ns)
         if len(peers) > 1:
             peers.sort(key=_BY_INDEX)  # join order, whatever the DONEs' order
-        now = self._loop.now_ns
+        now = self._kernel.now_ns
         grant = None
         wall = time.monotonic()
         for peer in peers:
@@ -574,7 +576,7 @@ class ClockServer:
     def _on_done(self, peer: _Peer, t_ns: int, next_ns: int) -> None:
         if peer.jump_acked != peer.jump_sent:
             return  # sent before it read the JUMP: about a time that no longer exists
-        now = self._loop.now_ns
+        now = self._kernel.now_ns
         if peer.mode == proto.MODE_FOLLOW:
             self._schedule(peer, next_ns, now)
             return
@@ -672,7 +674,7 @@ class ClockServer:
                     regrant.append(peer)
 
     def _grant_all(self, peers: list[_Peer]) -> None:
-        now = self._loop.now_ns
+        now = self._kernel.now_ns
         for peer in peers:
             if peer.working_at is None and not peer.lost and peer in self._peers:
                 self._start_work(peer, now)
@@ -693,7 +695,7 @@ class ClockServer:
         ClockJumpedError, as in-process), a follower asks for its deadline again."""
         self._jumps += 1
         seq = self._jumps
-        after = self._loop.now_ns
+        after = self._kernel.now_ns
         frame = proto.jump(seq, jump.before.nanoseconds, after)
         for timer, _ in self._due.values():
             timer.cancel()
@@ -721,7 +723,7 @@ class ClockServer:
             self._send(peer, proto.time_frame(now))
 
     def _tick_followers(self) -> None:
-        now = self._loop.now_ns
+        now = self._kernel.now_ns
         for peer in self._peers:
             if peer.mode == proto.MODE_FOLLOW and not peer.lost:
                 self._send_time(peer, now)
@@ -790,12 +792,12 @@ class ClockServer:
             self._loop.remove_writer(peer.sock)
             if peer.stale_time:
                 peer.stale_time = False
-                self._send(peer, proto.time_frame(self._loop.now_ns))
+                self._send(peer, proto.time_frame(self._kernel.now_ns))
 
     # ------------------------------------------------------------ faults
 
     def _now(self) -> str:
-        return f"{self._loop.now_ns / 1e9:.6f} s of sim time"
+        return f"{self._kernel.now_ns / 1e9:.6f} s of sim time"
 
     def _lost(self, peer: _Peer, reason: str) -> None:
         if self._closed or peer.lost:
@@ -837,7 +839,7 @@ class ClockServer:
             self._disconnect(peer)
             peer.outbox = []
             if peer.working_at is None:  # it must hold the simulation until replaced
-                self._start_work(peer, self._loop.now_ns)
+                self._start_work(peer, self._kernel.now_ns)
         elif not peer.silent_reported:
             peer.silent_reported = True
             log.warning(
@@ -910,7 +912,7 @@ class ClockServer:
 
     def _keepalive(self) -> None:
         """Tell every waiting participant the time: a stopped server is one that goes quiet."""
-        now = self._loop.now_ns
+        now = self._kernel.now_ns
         frame = proto.time_frame(now)
         for peer in self._peers:
             if peer.working_at is None and not peer.lost and not peer.out:
