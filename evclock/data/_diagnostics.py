@@ -52,7 +52,13 @@ _registry: weakref.WeakKeyDictionary[
 
 @dataclass(frozen=True, slots=True)
 class StampWarning:
-    """One diagnostic event: what happened, on which stream or consumer, and when."""
+    """One diagnostic event: what happened, on which stream or consumer, and when.
+
+    :ivar kind: ``"stale"``, ``"future"`` or ``"behind"`` (see :class:`StampDiagnostics`).
+    :ivar stream: the stream (or consumer, for ``"behind"``) concerned.
+    :ivar at: the clock's time when it was detected.
+    :ivar message: a human-readable explanation with a hint.
+    """
 
     kind: WarningKind
     """``"stale"``, ``"future"`` or ``"behind"`` (see :class:`StampDiagnostics`)."""
@@ -66,7 +72,16 @@ class StampWarning:
 
 @dataclass(slots=True)
 class StreamAgeStats:
-    """Age statistics of one stream's messages (age = clock now - stamp, at observation)."""
+    """Age statistics of one stream's messages (age = clock now - stamp, at observation).
+
+    :ivar count: messages observed.
+    :ivar stale: messages older than ``stale_after``.
+    :ivar future: messages stamped ahead of the clock by more than ``future_tolerance``.
+    :ivar sum_ns: the sum of their ages, in nanoseconds (see :meth:`mean`).
+    :ivar min_ns: the smallest age seen, in nanoseconds.
+    :ivar max_ns: the largest age seen, in nanoseconds.
+    :ivar last_stamp: the stamp of the latest message, or None before the first.
+    """
 
     count: int = 0
     stale: int = 0
@@ -305,6 +320,8 @@ def diagnostics_report(loop: asyncio.AbstractEventLoop | None = None) -> list[di
     """``as_dict()`` of every :class:`StampDiagnostics` used on ``loop`` (default: running).
 
     The latest diagnostics of each name still alive, in the order the names first appeared.
+
+    :returns: one ``as_dict()`` per diagnostics, in that order.
     """
     if loop is None:
         loop = asyncio.get_running_loop()

@@ -104,9 +104,9 @@ def _convert(raw: object, clock_type: ClockType, origin: str) -> Time:
 def stamp_of(message: object, clock_type: ClockType, key: StampKey | None = None) -> Time:
     """The stamp of ``message`` as a :class:`Time` of ``clock_type`` (see the module docstring).
 
-    Raises:
-        ClockMismatchError: the stamp is a :class:`Time` of another clock domain.
-        InvalidTypeError: the message has no stamp evclock can read; pass ``key=``.
+    :returns: the stamp, as a :class:`Time`.
+    :raises ClockMismatchError: the stamp is a :class:`Time` of another clock domain.
+    :raises InvalidTypeError: the message has no stamp evclock can read; pass ``key=``.
     """
     if key is not None:
         return _convert(key(message), clock_type, f"the stamp key's result for {message!r:.80}")

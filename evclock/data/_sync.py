@@ -288,17 +288,20 @@ class TimeSynchronizer(_Synchronizer):
     sets older than an emitted one are dropped, and at most ``queue_size`` incomplete stamps
     are held (the oldest is dropped first). Dropped messages are counted in :attr:`dropped`.
 
-    Args:
-        streams: the number of streams, or their names.
-        queue_size: incomplete stamps held at most.
-        clock: stamps are read in its domain (default: ``evclock.clock()`` at the first add).
-        key: how to read a message's stamp (see :func:`evclock.data.stamp_of`).
-        callback: called as ``callback(*messages)`` for each group; without it groups are
-            read with ``async for group in sync`` (a tuple of messages, in stream order).
-        max_pending: groups queued for ``async for`` at most; beyond, the oldest is dropped
-            and counted in :attr:`groups_dropped`.
-        diagnostics: a :class:`StampDiagnostics` told every message's stamp and the depth of
-            the group queue.
+    :param streams: the number of streams, or their names.
+    :param queue_size: incomplete stamps held at most.
+    :param clock: stamps are read in its domain (default: ``evclock.clock()`` at the first add).
+    :param key: how to read a message's stamp (see :func:`evclock.data.stamp_of`).
+    :param callback: called as ``callback(*messages)`` for each group; without it groups are
+        read with ``async for group in sync`` (a tuple of messages, in stream order).
+    :param max_pending: groups queued for ``async for`` at most; beyond, the oldest is dropped
+        and counted in :attr:`groups_dropped`.
+    :param diagnostics: a :class:`StampDiagnostics` told every message's stamp and the depth
+        of the group queue.
+    :param name: how diagnostics and ``evclock run`` label this synchronizer.
+    :raises InvalidArgumentError: a non-positive ``queue_size`` or ``max_pending``.
+    :raises InvalidTypeError: a non-callable ``key`` or ``callback``, a coroutine function as
+        ``callback``, or ``diagnostics`` that is not a :class:`StampDiagnostics`.
     """
 
     def __init__(
@@ -350,6 +353,38 @@ class ApproximateTimeSynchronizer(_Synchronizer):
     ``queue_size`` bounds the messages held per stream (waiting or set aside during the
     search); overflow drops the oldest, counted in :attr:`dropped`. Other arguments as
     :class:`TimeSynchronizer`.
+
+    :param streams: the number of streams, or their names.
+    :param queue_size: messages held per stream at most.
+    :param slop: seconds or a :class:`Duration`: use ROS Python's matching with this
+        maximum spread (None: the C++ policy).
+    :param max_interval: seconds or a :class:`Duration`: the widest group the C++ policy
+        emits (None: no limit).
+    :param age_penalty: the C++ policy's weight of later groups (a finite number >= 0).
+    :param lower_bounds: each stream's minimum interval between stamps (C++ policy only).
+    :param clock: stamps are read in its domain (default: ``evclock.clock()`` at the first add).
+    :param key: how to read a message's stamp (see :func:`evclock.data.stamp_of`).
+    :param callback: called as ``callback(*messages)`` for each group; without it groups are
+        read with ``async for group in sync`` (a tuple of messages, in stream order).
+    :param max_pending: groups queued for ``async for`` at most; beyond, the oldest is
+        dropped and counted in :attr:`groups_dropped`.
+    :param diagnostics: a :class:`StampDiagnostics` told every message's stamp and the
+        depth of the group queue.
+    :param name: how diagnostics and ``evclock run`` label this synchronizer.
+    :raises InvalidArgumentError: ``slop`` combined with a C++-policy option, a zero
+        ``slop``, a negative interval, a negative or infinite ``age_penalty``, a
+        ``lower_bounds`` of the wrong length, or a non-positive ``queue_size``/``max_pending``.
+    :raises InvalidTypeError: a non-callable ``key`` or ``callback``, a coroutine function
+        as ``callback``, ``diagnostics`` that is not a :class:`StampDiagnostics`, or an
+        argument of the wrong type.
+
+    Example::
+
+        sync = ApproximateTimeSynchronizer(["camera", "lidar"], max_interval=0.02)
+        sync.add("camera", image)
+        sync.add("lidar", scan)
+        async for camera, lidar in sync:
+            ...
     """
 
     def __init__(

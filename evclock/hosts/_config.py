@@ -53,6 +53,16 @@ def register_clock_scheme(scheme: str, factory: str | Callable[[str], TimeSource
 
     ``factory`` is a callable returning a new :class:`~evclock.sources.TimeSource` for the URL, or
     a ``"module:function"`` path imported on first use.
+
+    :param scheme: the URL scheme, a lowercase identifier such as ``"ros2"``.
+    :param factory: ``url -> TimeSource`` callable or ``"module:function"`` import path.
+    :raises InvalidArgumentError: ``scheme`` is not a lowercase identifier.
+    :raises InvalidTypeError: ``factory`` is neither callable nor a ``"module:function"`` string.
+
+    Example::
+
+        evclock.register_clock_scheme("mysim", "mysim.evclock:source_from_url")
+        evclock.run(main(), clock="mysim://localhost")
     """
     if not isinstance(scheme, str) or not scheme.isidentifier() or scheme != scheme.lower():
         raise InvalidArgumentError(

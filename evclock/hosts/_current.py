@@ -51,6 +51,9 @@ def clock() -> Clock:
     Controller code calls this and never needs to know which one it got. On a loop without
     a simulation while ``EVCLOCK_USE_SIM_TIME`` asks for sim time, it raises
     :class:`NoSimulationError` instead of silently running on wall time.
+
+    :returns: the running loop's :class:`SimClock`, or a :class:`WallClock`.
+    :raises NoSimulationError: sim time is asked for but the loop has no simulation.
     """
     loop = _running_loop("evclock.clock()")
     if isinstance(loop, SimEventLoop):
@@ -70,7 +73,11 @@ def clock() -> Clock:
 
 
 def sim_clock() -> SimClock:
-    """The sim clock of the running loop; :class:`NoSimulationError` if there is none."""
+    """The sim clock of the running loop; :class:`NoSimulationError` if there is none.
+
+    :returns: the running loop's :class:`SimClock`.
+    :raises NoSimulationError: the running loop has no simulation.
+    """
     loop = _running_loop_or_none()
     if isinstance(loop, SimEventLoop):
         return loop.clock

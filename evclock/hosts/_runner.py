@@ -28,7 +28,14 @@ _T = TypeVar("_T")
 
 def resolve_use_sim_time(use_sim_time: bool | None = None, *, default: bool = True) -> bool:
     """Decide sim or wall time once, at launch: the argument, else the environment, else
-    ``default``."""
+    ``default``.
+
+    :param use_sim_time: True or False decides; None defers to ``EVCLOCK_USE_SIM_TIME``.
+    :param default: the answer when both the argument and the environment are unset.
+    :returns: True for sim time, False for wall time.
+    :raises InvalidTypeError: ``use_sim_time`` is not a bool or None.
+    :raises InvalidArgumentError: ``EVCLOCK_USE_SIM_TIME`` holds an unrecognised value.
+    """
     if use_sim_time is not None:
         if not isinstance(use_sim_time, bool):
             raise InvalidTypeError(
@@ -85,6 +92,29 @@ def loop_factory(
     gets a :class:`VirtualTimeSource` starting at ``start`` seconds. ``clock`` (a URL such
     as ``unix:///tmp/sim.sock``) makes each loop join that clock server instead (see
     :func:`run`); unlike :func:`run`, a loop factory does not read ``EVCLOCK_CLOCK``.
+    The other options are passed to every :class:`SimEventLoop` the factory makes; they
+    are validated once, here.
+
+    :param source: a zero-argument callable returning a new time source for each loop.
+    :param start: sim seconds (or a Time) where the default virtual time starts.
+    :param rtf: real-time factor: None or ``"max"`` = as fast as possible, 1.0 = real time.
+    :param strict: raise :class:`LagError` when lagging more than ``max_lag`` behind ``rtf``.
+    :param max_lag: wall seconds a paced run may fall behind before re-anchoring (or raising).
+    :param stall_timeout: wall seconds sim time may be held by outside work or I/O waits
+        before :class:`StallError`; None waits forever.
+    :param paused: start each loop paused.
+    :param watch_threads: hold sim time while other non-daemon threads are busy (default).
+    :param clock: a clock-server URL each loop joins instead of using ``source``.
+    :returns: a callable taking no arguments and returning a new :class:`SimEventLoop`.
+    :raises InvalidArgumentError: both ``source`` and ``clock``; ``start`` with a custom
+        source or clock; ``rtf``/``paused`` with ``clock``; an out-of-range ``rtf``,
+        ``max_lag`` or ``stall_timeout``; an unsupported clock URL (when a loop is made).
+    :raises InvalidTypeError: ``source`` is not callable, or an option has the wrong type.
+
+    Example::
+
+        with asyncio.Runner(loop_factory=evclock.loop_factory(rtf=1.0)) as runner:
+            runner.run(main())
     """
     rtf = _rtf(rtf)
     if clock is not None:
@@ -184,6 +214,36 @@ def run(
     or ``follow``, ``name=``, ``token=`` and ``timeout=`` (wall seconds) options; other
     schemes come from :func:`evclock.register_clock_scheme`. It excludes ``source``,
     ``start``, pacing and wall time: a conflicting combination is an error, not a guess.
+
+    :param main: the coroutine object to run (``main()``, not ``main``).
+    :param use_sim_time: True/False, or None to read ``EVCLOCK_USE_SIM_TIME`` (default True).
+    :param source: the :class:`~evclock.sources.TimeSource` driving sim time.
+    :param start: sim seconds (or a Time) where the default virtual time starts.
+    :param until: sim seconds (or a Time) after which a still running ``main`` is cancelled.
+    :param rtf: real-time factor: None or ``"max"`` = as fast as possible, 1.0 = real time.
+    :param strict: raise :class:`LagError` when lagging more than ``max_lag`` behind ``rtf``.
+    :param max_lag: wall seconds a paced run may fall behind before re-anchoring (or raising).
+    :param stall_timeout: wall seconds sim time may be held by outside work or I/O waits
+        before :class:`StallError`; None waits forever.
+    :param paused: start paused (resume through ``clock().host``).
+    :param wall_clock: ``STEADY`` or ``SYSTEM``: the clock used on wall time.
+    :param debug: asyncio debug mode, as for :func:`asyncio.run` (None: the default).
+    :param clock: a clock URL to join another process's simulation (else ``EVCLOCK_CLOCK``).
+    :returns: what ``main`` returns.
+    :raises InvalidTypeError: ``main`` is not a coroutine, ``source`` is not a TimeSource,
+        ``clock`` is not a string, or an option has the wrong type.
+    :raises InvalidArgumentError: conflicting options (a source or clock on wall time,
+        ``start`` with a source or clock, pacing with a clock), an out-of-range option,
+        an ``until`` not after the start, or an unsupported clock URL.
+    :raises SimTimeLimitError: ``main`` was still running at ``until``.
+    :raises RemoteClockError: joining or keeping the clock server failed (``clock=``).
+
+    Example::
+
+        async def main() -> None:
+            await evclock.clock().sleep(2.0)
+
+        evclock.run(main(), rtf=None)  # two sim seconds, as fast as possible
     """
     if not asyncio.iscoroutine(main):
         raise InvalidTypeError(

@@ -148,6 +148,11 @@ class SimClock(Clock):
 
     Its waits must be awaited on :attr:`loop`; :attr:`host` is what controls its time
     (``pause()``, ``resume()``, ``step()``, ``rtf``).
+
+    Made by the loop or driver that owns the time; get it with :func:`evclock.clock`.
+
+    :param core: the kernel whose time this is (its schedule serves the sleeps).
+    :param host: what controls this time: the :class:`SimEventLoop` or the ``SimDriver``.
     """
 
     clock_type = SIM

@@ -60,7 +60,15 @@ JumpCallback = Callable[[TimeJump], object]
 
 
 class JumpHandle:
-    """A registered pair of jump callbacks; ``remove()`` unregisters them."""
+    """A registered pair of jump callbacks; ``remove()`` unregisters them.
+
+    Made by :meth:`Clock.on_jump`, not directly.
+
+    :param registry: the clock's list of handles this one is registered in.
+    :param pre: called with the :class:`TimeJump` before the clock jumps, or None.
+    :param post: called with the :class:`TimeJump` after the clock jumped, or None.
+    :param threshold: the :class:`JumpThreshold` a jump must pass to trigger the callbacks.
+    """
 
     def __init__(
         self,

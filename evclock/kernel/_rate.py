@@ -87,6 +87,14 @@ class Tick:
     ``missed``: deadlines since the previous tick that got no tick at all. The integer
     ``expected_ns``/``actual_ns`` are there too; the ``Time`` objects are built on access
     (a 1 kHz loop should not pay for what its body does not read).
+
+    Made by :class:`Rate`, not directly.
+
+    :param index: the number of this deadline in the schedule (tick 0 is the start).
+    :param expected_ns: the deadline, in integer nanoseconds.
+    :param actual_ns: when the tick was delivered, in integer nanoseconds.
+    :param missed: deadlines skipped since the previous tick.
+    :param clock_type: the clock type of the ``expected``/``actual`` Time objects.
     """
 
     __slots__ = ("_clock_type", "actual_ns", "expected_ns", "index", "missed")
@@ -192,6 +200,15 @@ class Rate:
     late tick for the latest passed deadline and skips the others; ``"catch_up"`` delivers
     every missed tick at once, in a burst; ``"reset"`` delivers one late tick and re-anchors
     the schedule on the current time. A clock jump re-anchors the schedule too.
+
+    Create with :meth:`Clock.rate`.
+
+    :param clock: the clock whose time the deadlines are on.
+    :param hz: the frequency in hertz (a positive, finite number).
+    :param policy: ``"skip"``, ``"catch_up"`` or ``"reset"``: what an overrun does.
+    :param name: a label for statistics and diagnostics (default ``rate-<hz>Hz``).
+    :raises InvalidTypeError: ``hz`` is not a number.
+    :raises InvalidArgumentError: ``hz`` is not positive and finite, or ``policy`` is unknown.
     """
 
     def __init__(
@@ -293,6 +310,15 @@ class Timer:
     are drift-free; an overrun skips the missed periods (counted in ``stats.missed``).
     If the callback raises, the error goes to the loop's exception handler and the timer
     stops (``exception()`` returns it).
+
+    :param clock: the clock whose time the deadlines are on.
+    :param period: the period, in seconds or as a :class:`Duration`.
+    :param callback: called with no arguments each period; may be a coroutine function.
+    :param oneshot: call once, after one period, then stop.
+    :param name: a label for statistics and diagnostics (default: the callback's name).
+    :raises InvalidTypeError: ``callback`` is not callable, or ``period`` is not a number
+        or a Duration.
+    :raises InvalidArgumentError: ``period`` is not positive or is out of range.
     """
 
     def __init__(

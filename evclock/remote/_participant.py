@@ -596,7 +596,8 @@ class RemoteClockSource(TimeSource):
 def participant() -> RemoteClockSource:
     """The clock-server connection of the running loop (to publish, subscribe and call).
 
-    Raises :class:`~evclock.NoSimulationError` when this program did not join a clock server.
+    :returns: the :class:`RemoteClockSource` the running loop follows.
+    :raises NoSimulationError: this program did not join a clock server.
     """
     import asyncio
 

@@ -72,7 +72,14 @@ _MAX_BACKLOG: Final = 64 * 1024 * 1024
 
 @dataclasses.dataclass(frozen=True, slots=True)
 class Message:
-    """Data published on a topic: who sent it, at which sim time, and its bytes."""
+    """Data published on a topic: who sent it, at which sim time, and its bytes.
+
+    :ivar sender: the name of the participant that published it (``"simulation"`` for
+        :meth:`ClockServer.publish`).
+    :ivar topic: the topic it was published on.
+    :ivar time: the sim time it was published at.
+    :ivar data: the payload.
+    """
 
     sender: str
     topic: str
@@ -138,6 +145,23 @@ class ClockServer:
 
     Participants join in *lockstep* (the simulation waits for them every step they have a
     deadline in) or *follow* (they receive every step's time and never hold the simulation).
+
+    The options are those of :func:`~evclock.remote.serve`, which documents them in full.
+
+    :param loop: the :class:`~evclock.SimEventLoop` whose sim time is served.
+    :param address: ``unix:///path.sock`` or ``tcp://HOST:PORT`` to listen on.
+    :param on_fault: ``abort``, ``drop`` or ``pause``: what a lost lockstep participant causes.
+    :param step_timeout: wall seconds a lockstep participant may work on one step (None: no
+        limit).
+    :param token: the shared secret participants must present (default: the address's
+        ``?token=``).
+    :param info: JSON-serialisable facts given to every participant at join.
+    :param allow_remote: allow listening on a non-loopback address (which needs a token).
+    :raises InvalidArgumentError: an unknown ``on_fault``, a bad ``step_timeout``, an
+        invalid or unusable address, a non-loopback address without a token or without
+        ``allow_remote``, or ``info`` that is not JSON-serialisable.
+    :raises InvalidTypeError: ``token`` is not a non-empty string, or ``address`` is not a
+        string.
     """
 
     def __init__(
@@ -979,6 +1003,11 @@ async def serve(
     :param token: a shared secret participants must present (``?token=`` in their address);
         required to serve on a non-loopback address, which also needs ``allow_remote``.
     :param info: JSON-serialisable facts given to every participant at join (scenario, seed).
+    :param allow_remote: allow serving on a non-loopback address (``tcp://0.0.0.0:PORT``).
+    :returns: an async context manager yielding the :class:`ClockServer`.
+    :raises InvalidTypeError: the running loop is not a :class:`~evclock.SimEventLoop`.
+    :raises InvalidArgumentError: an invalid option or address (see :class:`ClockServer`).
+    :raises ParticipantLostError: with ``on_fault="abort"``, a lockstep participant was lost.
     """
     loop = asyncio.get_running_loop()
     if not isinstance(loop, SimEventLoop):

@@ -87,6 +87,24 @@ class Ros2ClockSource(TimeSource):
     ``clock.sleep`` sleepers get :class:`~evclock.ClockJumpedError`, rates and timers re-anchor).
     If no sample arrives for ``silence_timeout`` wall seconds while the loop waits for one,
     :class:`~evclock.ClockLostError` ends the run (None: wait forever).
+
+    :param domain_id: the ROS domain id (default ``ROS_DOMAIN_ID``, else 0).
+    :param topic: the Clock topic to follow.
+    :param node_name: the name of the node evclock declares in the ROS graph.
+    :param connect: Zenoh endpoints to connect to (the rmw_zenoh router by default).
+    :param listen: Zenoh endpoints to accept peer connections on.
+    :param startup_timeout: wall seconds to wait for the first message (None: no limit).
+    :param silence_timeout: wall seconds without a message before :class:`~evclock.ClockLostError`
+        (None: wait forever).
+    :raises InvalidArgumentError: an invalid domain id, topic, node name, endpoint or timeout.
+    :raises InvalidTypeError: an argument of the wrong type.
+    :raises MissingExtraError: the ``ros2`` extra is missing (``pip install 'evclock[ros2]'``).
+    :raises ClockLostError: no message arrived within ``startup_timeout``.
+    :raises Ros2MessageError: the first message is not a valid Clock message.
+
+    Example::
+
+        evclock.run(main(), source=Ros2ClockSource(domain_id=0, startup_timeout=30.0))
     """
 
     external = True

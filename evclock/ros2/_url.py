@@ -97,5 +97,18 @@ def source_options(url: str) -> dict[str, Any]:
 
 
 def source_from_url(url: str) -> Ros2ClockSource:
-    """Open a :class:`Ros2ClockSource` as a ``ros2://`` URL describes (waits for /clock)."""
+    """Open a :class:`Ros2ClockSource` as a ``ros2://`` URL describes (waits for /clock).
+
+    :param url: ``ros2://[HOST:PORT]/TOPIC`` with optional ``domain_id``, ``node_name``,
+        ``connect``, ``listen``, ``startup_timeout`` and ``silence_timeout`` query options.
+    :returns: the source, once the first ``/clock`` message arrived.
+    :raises InvalidArgumentError: a malformed URL, an unknown or repeated option, or an
+        invalid option value.
+    :raises MissingExtraError: the ``ros2`` extra is missing.
+    :raises ClockLostError: no ``/clock`` message arrived within ``startup_timeout``.
+
+    Example::
+
+        evclock.run(main(), clock="ros2:///clock?domain_id=3")
+    """
     return Ros2ClockSource(**source_options(url))

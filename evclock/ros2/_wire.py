@@ -56,7 +56,14 @@ _NAME_SEGMENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 @dataclasses.dataclass(frozen=True)
 class WireFormat:
-    """One rmw_zenoh_cpp wire variant: how the type hash and the attachment are written."""
+    """One rmw_zenoh_cpp wire variant: how the type hash and the attachment are written.
+
+    :ivar name: the variant's name (``"jazzy"``, ``"humble"``).
+    :ivar type_hash: the type-hash segment of key expressions and liveliness tokens.
+    :ivar attachment: ``"compact"``: int64, int64, GID; ``"keyed"``: each preceded by its
+        field name.
+    :ivar releases: the rmw_zenoh_cpp releases that speak it (for messages and the docs).
+    """
 
     name: str
     #: The type-hash segment of key expressions and liveliness tokens.
@@ -103,7 +110,14 @@ def wire_format(name: object) -> WireFormat:
 
 
 def resolve_domain_id(domain_id: object = None) -> int:
-    """The ROS domain id: the argument, else ``ROS_DOMAIN_ID`` (as ROS reads it), else 0."""
+    """The ROS domain id: the argument, else ``ROS_DOMAIN_ID`` (as ROS reads it), else 0.
+
+    :param domain_id: an int in [0, 232], or None to read the environment.
+    :returns: the domain id.
+    :raises InvalidTypeError: ``domain_id`` is neither an int nor None.
+    :raises InvalidArgumentError: the id (given or from ``ROS_DOMAIN_ID``) is out of range or
+        not an integer.
+    """
     if domain_id is None:
         raw = os.environ.get(ENV_ROS_DOMAIN_ID, "").strip()
         if not raw:
@@ -141,7 +155,15 @@ def _mangle(name: str) -> str:
 
 
 def clock_key_expr(domain_id: int, topic: str = "/clock", wire: WireFormat | None = None) -> str:
-    """The Zenoh key expression rmw_zenoh publishes ``topic`` (a Clock topic) on."""
+    """The Zenoh key expression rmw_zenoh publishes ``topic`` (a Clock topic) on.
+
+    :param domain_id: the ROS domain id.
+    :param topic: the Clock topic (a relative name resolves under the root namespace).
+    :param wire: the wire format (default: Jazzy's).
+    :returns: the key expression, such as ``0/clock/rosgraph_msgs::msg::dds_::Clock_/RIHS01_...``.
+    :raises InvalidArgumentError: ``topic`` is not a valid ROS topic name.
+    :raises InvalidTypeError: ``topic`` is not a string.
+    """
     fmt = wire or WIRE_FORMATS[DEFAULT_WIRE_FORMAT]
     return f"{domain_id}/{resolve_topic(topic)[1:]}/{CLOCK_DDS_TYPE}/{fmt.type_hash}"
 
@@ -166,7 +188,13 @@ def check_type_hash(key_expr: str) -> None:
 
 
 def encode_clock(time_ns: int) -> bytes:
-    """A ``rosgraph_msgs/msg/Clock`` message at ``time_ns``, CDR little-endian with header."""
+    """A ``rosgraph_msgs/msg/Clock`` message at ``time_ns``, CDR little-endian with header.
+
+    :param time_ns: the time, in integer nanoseconds.
+    :returns: the serialised message.
+    :raises InvalidTypeError: ``time_ns`` is not an int.
+    :raises InvalidArgumentError: the time does not fit a ``builtin_interfaces/Time``.
+    """
     if isinstance(time_ns, bool) or not isinstance(time_ns, int):
         raise InvalidTypeError(f"time_ns must be an int, got {type(time_ns).__name__}")
     sec, nanosec = divmod(time_ns, _NS_PER_S)
@@ -178,7 +206,12 @@ def encode_clock(time_ns: int) -> bytes:
 
 
 def decode_clock(payload: bytes) -> int:
-    """The time in ns of a CDR ``rosgraph_msgs/msg/Clock`` message (either byte order)."""
+    """The time in ns of a CDR ``rosgraph_msgs/msg/Clock`` message (either byte order).
+
+    :param payload: the serialised message, CDR header included.
+    :returns: the message's time, in integer nanoseconds.
+    :raises Ros2MessageError: the payload is too short, not plain CDR, or holds an invalid time.
+    """
     if len(payload) < 12:
         raise Ros2MessageError(
             f"a /clock message must hold at least 12 bytes (CDR header, sec, nanosec), got "
@@ -225,7 +258,15 @@ def _leb128(n: int) -> bytes:
 def encode_attachment(
     sequence_number: int, source_timestamp: int, gid: bytes, wire: WireFormat | None = None
 ) -> bytes:
-    """The attachment rmw_zenoh puts on every sample (see the module docstring)."""
+    """The attachment rmw_zenoh puts on every sample (see the module docstring).
+
+    :param sequence_number: the sample's sequence number (int64).
+    :param source_timestamp: the publication time in wall nanoseconds (int64).
+    :param gid: the publisher's 16-byte GID.
+    :param wire: the wire format (default: Jazzy's).
+    :returns: the attachment bytes.
+    :raises InvalidArgumentError: ``gid`` is not 16 bytes long.
+    """
     if len(gid) != _GID_SIZE:
         raise InvalidArgumentError(f"a publisher GID has 16 bytes, got {len(gid)}")
     fmt = wire or WIRE_FORMATS[DEFAULT_WIRE_FORMAT]
@@ -248,7 +289,14 @@ def encode_attachment(
 
 
 def node_token(domain_id: int, zid: str, node_id: int, node_name: str) -> str:
-    """The liveliness token of a node in the root namespace and the default enclave."""
+    """The liveliness token of a node in the root namespace and the default enclave.
+
+    :param domain_id: the ROS domain id.
+    :param zid: the Zenoh session id.
+    :param node_id: the node's id within the session.
+    :param node_name: the node's name.
+    :returns: the token's key expression.
+    """
     return f"@ros2_lv/{domain_id}/{zid}/{node_id}/{node_id}/NN/%/%/{node_name}"
 
 
@@ -262,7 +310,20 @@ def endpoint_token(
     topic: str,
     wire: WireFormat | None = None,
 ) -> str:
-    """The liveliness token of a Clock publisher (``MP``) or subscription (``MS``)."""
+    """The liveliness token of a Clock publisher (``MP``) or subscription (``MS``).
+
+    :param kind: ``"MP"`` for a publisher, ``"MS"`` for a subscription.
+    :param domain_id: the ROS domain id.
+    :param zid: the Zenoh session id.
+    :param node_id: the id of the node the endpoint belongs to.
+    :param entity_id: the endpoint's id within the session.
+    :param node_name: the name of the node the endpoint belongs to.
+    :param topic: the Clock topic.
+    :param wire: the wire format (default: Jazzy's).
+    :returns: the token's key expression.
+    :raises InvalidArgumentError: ``topic`` is not a valid ROS topic name.
+    :raises InvalidTypeError: ``topic`` is not a string.
+    """
     fmt = wire or WIRE_FORMATS[DEFAULT_WIRE_FORMAT]
     return (
         f"@ros2_lv/{domain_id}/{zid}/{node_id}/{entity_id}/{kind}/%/%/{node_name}/"
@@ -271,7 +332,12 @@ def endpoint_token(
 
 
 def entity_gid(token: str) -> bytes:
-    """An entity's GID as rmw_zenoh derives it: XXH3-128 of its token, low 64 bits first."""
+    """An entity's GID as rmw_zenoh derives it: XXH3-128 of its token, low 64 bits first.
+
+    :param token: the entity's liveliness token (see :func:`endpoint_token`).
+    :returns: the 16-byte GID.
+    :raises MissingExtraError: the ``ros2`` extra (xxhash) is missing.
+    """
     from evclock.ros2._session import require
 
     xxhash = require("xxhash")

@@ -59,6 +59,9 @@ def exact_time_step(dt: float) -> Fraction:
     cannot hold exactly. If a fraction with a denominator of at most 10**6 rounds to exactly
     the float ``dt``, that fraction is the time step (``1/240`` stays ``1/240``, so 240 steps
     are exactly one second); otherwise the float's exact binary value is used.
+
+    :param dt: the time step, in seconds (a positive float).
+    :returns: the time step in seconds, as an exact :class:`~fractions.Fraction`.
     """
     exact = Fraction(dt)
     simple = exact.limit_denominator(_MAX_DENOMINATOR)
@@ -85,6 +88,10 @@ class StepHook:
 
     ``remove()`` unregisters it (idempotent). If the function raises, the error goes to the
     loop's exception handler, the hook is removed and :meth:`exception` returns the error.
+
+    :param source: the stepping source the hook is registered on.
+    :param fn: called with no arguments around every step.
+    :param when: ``"before"`` or ``"after"`` the step.
     """
 
     __slots__ = ("_exception", "_fn", "_source", "active", "when")

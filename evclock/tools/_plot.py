@@ -38,7 +38,13 @@ def figure_class() -> Any:
 
 def plot_run(trace: Trace, output: Path) -> None:
     """One panel per rate loop (tick lateness over sim time), then the achieved rtf, as a
-    PNG; all panels share the sim-time axis."""
+    PNG; all panels share the sim-time axis.
+
+    :param trace: a recording read with :func:`read_trace`.
+    :param output: the PNG file to write.
+    :raises TraceError: the recording has no rate loop to plot.
+    :raises MissingExtraError: matplotlib is missing (``pip install 'evclock[plot]'``).
+    """
     loops = [t for t in trace.topics if t.startswith("/evclock/loop/")]
     if not loops:
         raise TraceError(f"{str(trace.path)!r} records no rate loop: nothing to plot")
@@ -71,7 +77,13 @@ def plot_run(trace: Trace, output: Path) -> None:
 
 
 def plot_sweep(result: SweepResult, output: Path) -> None:
-    """One histogram per numeric report field over the sweep's runs, as a PNG."""
+    """One histogram per numeric report field over the sweep's runs, as a PNG.
+
+    :param result: what :func:`sweep` returned.
+    :param output: the PNG file to write.
+    :raises TraceError: no run of the sweep reported a number.
+    :raises MissingExtraError: matplotlib is missing (``pip install 'evclock[plot]'``).
+    """
     from evclock.tools._sweep import numeric_fields
 
     fields: dict[str, list[float]] = {}

@@ -45,7 +45,12 @@ _PROGRESS_PERIOD = 0.05  # sim seconds between progress refreshes
 
 @dataclasses.dataclass
 class LoopReport:
-    """One rate loop's figures at the end of a run."""
+    """One rate loop's figures at the end of a run.
+
+    :ivar name: the loop's name.
+    :ivar hz: its frequency, in hertz.
+    :ivar stats: its :class:`~evclock.LoopStats` figures (ticks, misses, lateness...).
+    """
 
     name: str
     hz: float
@@ -58,6 +63,23 @@ class RunReport:
 
     ``finished`` is False when the run was cut short by its ``until`` limit before the
     mission ended (then the mission was neither accomplished nor failed).
+
+    :ivar scenario: the scenario's name.
+    :ivar seed: the seed of the run.
+    :ivar mode: ``"sim"`` or ``"wall"`` time.
+    :ivar success: whether the scenario accomplished its mission.
+    :ivar finished: whether the mission ended before the ``until`` limit.
+    :ivar sim_time_s: sim seconds run.
+    :ivar wall_time_s: wall seconds the run took.
+    :ivar achieved_rtf: sim time over wall time, or None when not measurable.
+    :ivar summary: the scenario's own figures.
+    :ivar loops: a :class:`LoopReport` per rate loop.
+    :ivar final_state: the scenario's final state vector.
+    :ivar params: the scenario parameters set for the run.
+    :ivar until_s: the sim-time limit of the run, in seconds.
+    :ivar setup_output: what the physics engine printed while the world was set up.
+    :ivar stamps: stamp diagnostics the scenario used, if any.
+    :ivar evclock_version: the evclock version that made the run.
     """
 
     scenario: str
@@ -187,6 +209,28 @@ def run_scenario(
     recording (sim time only); ``progress`` (a rich Progress, refreshed by the run itself)
     shows sim time and the achieved real-time factor; ``ros2_clock`` publishes sim time as
     ROS 2 ``/clock`` meanwhile (see :mod:`evclock.ros2`).
+
+    :param scenario: a registered name, ``module:Class``, a file, or a scenario class.
+    :param until: sim seconds to run at most (default: the scenario's ``default_until``).
+    :param rtf: real-time factor on sim time (None: as fast as possible).
+    :param seed: the seed the scenario is set up with.
+    :param params: scenario parameters to set (see :func:`load_scenario`'s classes).
+    :param gui: show the physics engine's GUI (needs a display).
+    :param wall: run on wall time instead of sim time.
+    :param record: an MCAP file to record the run to (sim time only).
+    :param progress: a rich Progress to show the run on.
+    :param ros2_clock: publish sim time as ROS 2 ``/clock`` with these options.
+    :returns: the :class:`RunReport` of the run.
+    :raises InvalidTypeError: ``seed`` is not an int, or a parameter has the wrong type.
+    :raises InvalidArgumentError: a non-positive ``until``, an unknown scenario or
+        parameter, ``gui`` without a display, or ``record``/``ros2_clock`` with ``wall``.
+    :raises ScenarioError: the scenario cannot be imported.
+    :raises MissingExtraError: ``record`` or ``ros2_clock`` without their extra installed.
+
+    Example::
+
+        report = run_scenario("kuka", seed=3, until=5.0)
+        print(report.verdict, report.achieved_rtf)
     """
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise InvalidTypeError(f"seed must be an int, got {seed!r}")

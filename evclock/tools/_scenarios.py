@@ -166,6 +166,20 @@ def load_scenario(spec: str, *, what: str | None = None) -> type[Any]:
     ``spec`` is a registered name (``kuka``), a ``module:Class`` reference
     (``mypkg.scenarios:Reach``), a Python file (``path/to/scenario.py``, which must define
     exactly one scenario class) or ``path/to/scenario.py:Class``.
+
+    :param spec: the scenario reference, as above.
+    :param what: how error messages name the scenario (default: ``spec`` quoted).
+    :returns: the scenario class (not an instance).
+    :raises InvalidTypeError: ``spec`` is not a string, or names something that is not a
+        concrete scenario class.
+    :raises InvalidArgumentError: an unknown registered name, a missing file, or a file
+        that does not define exactly one scenario class (or the named one).
+    :raises ScenarioError: the module cannot be imported, lacks the attribute, or the
+        name is registered more than once.
+
+    Example::
+
+        cls = load_scenario("mypkg.scenarios:Reach")
     """
     if not isinstance(spec, str):
         raise InvalidTypeError(f"a scenario is named by a string, got {type(spec).__name__}")
@@ -212,6 +226,9 @@ def parameters(cls: type[Any]) -> dict[str, ParamValue]:
 
     They are the public class attributes (on ``cls`` or a base) holding a bool, int, float or
     str, except ``name``, ``description`` and ``default_until``.
+
+    :param cls: a scenario class (see :func:`load_scenario`).
+    :returns: the default value of each parameter, by name.
     """
     found: dict[str, ParamValue] = {}
     for klass in reversed(cls.__mro__):

@@ -49,7 +49,13 @@ _STOP_GRACE_S = 5.0  # wall seconds a stopped worker gets to exit before it is k
 
 @dataclasses.dataclass(frozen=True)
 class RunSpec:
-    """One run of a sweep: what ``evclock run`` would be given."""
+    """One run of a sweep: what ``evclock run`` would be given.
+
+    :ivar scenario: the scenario (a name, a file, or ``module:Class``).
+    :ivar seed: the seed of the run.
+    :ivar params: the scenario parameters set for the run.
+    :ivar until: sim seconds to run at most (None: the scenario's default).
+    """
 
     scenario: str
     seed: int
@@ -78,7 +84,13 @@ def _format_param(value: ParamValue) -> str:
 @dataclasses.dataclass
 class SweepRow:
     """The outcome of one run: ``status`` is ``success``, ``failed``, ``cut short`` (the
-    scenario's verdict) or ``error`` (an exception or a crashed worker, in ``error``)."""
+    scenario's verdict) or ``error`` (an exception or a crashed worker, in ``error``).
+
+    :ivar spec: the run.
+    :ivar status: ``success``, ``failed``, ``cut short`` or ``error``.
+    :ivar report: the run's :meth:`RunReport.to_json`, or None after an error.
+    :ivar error: what went wrong, for an ``error`` row, else None.
+    """
 
     spec: RunSpec
     status: str
@@ -99,7 +111,15 @@ class SweepRow:
 
 @dataclasses.dataclass
 class SweepResult:
-    """Every finished row, in plan order, and whether the sweep was interrupted."""
+    """Every finished row, in plan order, and whether the sweep was interrupted.
+
+    :ivar scenario: the scenario as given (a name, a file, ``module:Class``).
+    :ivar name: the scenario class's ``name``.
+    :ivar planned: how many runs were planned.
+    :ivar rows: a :class:`SweepRow` per finished run, in plan order.
+    :ivar interrupted: whether the sweep was stopped (Ctrl-C) before every run finished.
+    :ivar wall_time_s: wall seconds the sweep took.
+    """
 
     scenario: str
     """The scenario as given (a name, a file, module:Class)."""
@@ -198,7 +218,19 @@ def plan(
     params: dict[str, list[ParamValue]] | None = None,
     until: float | None = None,
 ) -> list[RunSpec]:
-    """Every combination of parameter values (in the order given) times every seed."""
+    """Every combination of parameter values (in the order given) times every seed.
+
+    :param scenario: the scenario (a name, a file, or ``module:Class``).
+    :param seeds: the seeds each combination runs with.
+    :param params: the values to try, by parameter name (None: the defaults only).
+    :param until: sim seconds each run lasts at most (None: the scenario's default).
+    :returns: one :class:`RunSpec` per combination and seed.
+    :raises InvalidArgumentError: ``seeds`` is empty.
+
+    Example::
+
+        specs = plan("kuka", seeds=range(10), params={"gain": [0.5, 1.0]})  # 20 runs
+    """
     if not seeds:
         raise InvalidArgumentError("a sweep needs at least one seed")
     params = params or {}
@@ -399,6 +431,25 @@ def sweep(
     ``run_timeout`` (wall seconds) stops a run still going after it: an ``error`` row.
     ``on_row`` sees each row as it finishes; ``on_idle`` is called at least every
     0.2 s of wall time while runs are in flight (to refresh a progress display).
+
+    :param specs: the runs, usually from :func:`plan`.
+    :param backend: ``"local"`` (worker processes) or ``"ray"`` (a Ray cluster).
+    :param workers: how many runs go at once (at least 1).
+    :param address: the Ray cluster's address (``backend="ray"`` only).
+    :param run_timeout: wall seconds a run may take (None: no limit).
+    :param on_row: called with each :class:`SweepRow` as it finishes.
+    :param on_idle: called with no arguments while runs are in flight.
+    :returns: the :class:`SweepResult` (a Ctrl-C returns the rows finished so far).
+    :raises InvalidArgumentError: an unknown ``backend``, ``workers`` below 1, ``address``
+        without Ray, no ``specs``, a bad ``run_timeout``, or an unknown scenario.
+    :raises InvalidTypeError: ``workers`` is not an int.
+    :raises ScenarioError: the scenario cannot be imported.
+    :raises MissingExtraError: ``backend="ray"`` without Ray (``pip install 'evclock[ray]'``).
+
+    Example::
+
+        result = sweep(plan("kuka", seeds=range(20)), workers=2)
+        print(result.summary()["success_rate"])
     """
     if backend not in BACKENDS:
         raise InvalidArgumentError(f"--backend takes local or ray, got {backend!r}")

@@ -20,7 +20,14 @@ from evclock.tools._record import PROFILE
 
 @dataclasses.dataclass(frozen=True)
 class TraceMessage:
-    """One recorded message: channel, sim-time stamp (ns) and decoded JSON content."""
+    """One recorded message: channel, sim-time stamp (ns) and decoded JSON content.
+
+    :ivar topic: the channel it was recorded on.
+    :ivar time_ns: its sim-time stamp, in integer nanoseconds.
+    :ivar data: its content, decoded from JSON.
+    :ivar deterministic: whether its channel is reproducible run to run (compared by
+        ``evclock diff``).
+    """
 
     topic: str
     time_ns: int
@@ -30,7 +37,14 @@ class TraceMessage:
 
 @dataclasses.dataclass
 class Trace:
-    """A recording read back: its run metadata and messages in the order they were written."""
+    """A recording read back: its run metadata and messages in the order they were written.
+
+    Made by :func:`read_trace`.
+
+    :ivar path: the MCAP file it was read from.
+    :ivar metadata: the recording's metadata records, by name (decoded JSON values).
+    :ivar messages: every message, in the order it was written.
+    """
 
     path: Path
     metadata: dict[str, dict[str, Any]]
@@ -48,7 +62,13 @@ class Trace:
 
 @dataclasses.dataclass(frozen=True)
 class Divergence:
-    """Where two recordings first differ."""
+    """Where two recordings first differ.
+
+    :ivar index: position among the deterministic messages.
+    :ivar time_s: the sim time of the first difference in seconds, or None.
+    :ivar topic: the channel that differs, or None when the channels themselves differ.
+    :ivar detail: what differs, for people.
+    """
 
     index: int
     """Position among the deterministic messages."""
@@ -67,7 +87,18 @@ class Divergence:
 
 
 def read_trace(path: Path) -> Trace:
-    """Read an evclock MCAP recording (:class:`TraceError` if it is not one)."""
+    """Read an evclock MCAP recording (:class:`TraceError` if it is not one).
+
+    :param path: the ``.mcap`` file written by ``evclock run ... --record``.
+    :returns: the :class:`Trace`: its metadata and messages.
+    :raises TraceError: no file at ``path``, or it is not a readable evclock recording.
+    :raises MissingExtraError: the mcap package is missing (``pip install 'evclock[record]'``).
+
+    Example::
+
+        trace = read_trace(Path("run.mcap"))
+        print(trace.topics)
+    """
     try:
         from mcap.exceptions import McapError
         from mcap.reader import make_reader
@@ -133,7 +164,12 @@ def _field_difference(a: Any, b: Any, path: str = "") -> str:
 
 
 def first_divergence(a: Trace, b: Trace) -> Divergence | None:
-    """The first deterministic message that differs between ``a`` and ``b``, or None."""
+    """The first deterministic message that differs between ``a`` and ``b``, or None.
+
+    :param a: a recording (see :func:`read_trace`).
+    :param b: the recording to compare it with.
+    :returns: where they first differ, or None when their deterministic messages agree.
+    """
     left = [m for m in a.messages if m.deterministic]
     right = [m for m in b.messages if m.deterministic]
     for index, (x, y) in enumerate(zip(left, right, strict=False)):
