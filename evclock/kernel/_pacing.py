@@ -200,15 +200,12 @@ class Pacer:
         """Paused with no step left and no ``step_until`` target ahead: sim time can move
         only after a control (a step, a resume) changes this."""
         with self.lock:
-            return (
-                self.paused
-                and self._step_budget <= 0
-                and (
-                    self._run_until_ns is None
-                    or self._mark_pending
-                    or self._now_ns() >= self._run_until_ns
-                )
-            )
+            return self.paused and self._step_budget <= 0 and not self._running_until()
+
+    def _running_until(self) -> bool:
+        """A placed ``step_until`` target lies ahead (with the lock held)."""
+        until = self._run_until_ns
+        return until is not None and not self._mark_pending and self._now_ns() < until
 
     def allow(self, next_ns: int) -> bool:
         """May sim time move to ``next_ns`` now? If not, :attr:`delay` says how long to wait."""
@@ -220,11 +217,7 @@ class Pacer:
         if self.paused:
             if self._step_budget > 0:
                 stepping = True  # spent only once the pacing delay below is over
-            elif (
-                self._run_until_ns is None
-                or self._mark_pending
-                or self._now_ns() >= self._run_until_ns
-            ):
+            elif not self._running_until():
                 return self._refuse(None)
         if self._rtf is not None:
             wall = self._wall()

@@ -10,7 +10,6 @@ wall-time thresholds.
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import itertools
 import os
@@ -25,6 +24,7 @@ from typing import Any, TypeVar
 
 import pytest
 import uvloop
+from _paused_waits import PausedWaits
 
 import evclock
 from evclock import (
@@ -662,34 +662,6 @@ def test_paced_steps_are_paced_from_the_step_call() -> None:
     assert now == 0.2
 
 
-class _PausedWaits(selectors.DefaultSelector):
-    """A plain asyncio loop's selector that reports each wait with no timeout - nothing
-    ready, no timer: the paused driver waits for a control - as ``snapshot()``, taken on
-    the loop's thread, to the concurrent future of :meth:`expect`. The operator thread waits
-    on that future (never on a sleep: no fixed delays)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.snapshot: Callable[[], object] = lambda: None
-        self._next: concurrent.futures.Future[object] | None = None
-        self._lock = threading.Lock()
-
-    def expect(self) -> concurrent.futures.Future[object]:
-        """The snapshot at the loop's next idle wait (ask before calling the control)."""
-        future: concurrent.futures.Future[object] = concurrent.futures.Future()
-        with self._lock:
-            self._next = future
-        return future
-
-    def select(self, timeout: float | None = None) -> list[Any]:
-        if timeout is None:
-            with self._lock:
-                future, self._next = self._next, None
-            if future is not None:
-                future.set_result(self.snapshot())
-        return list(super().select(timeout))
-
-
 def _operated_driver(
     script: Callable[[Callable[..., None], Callable[[], None]], None],
     *,
@@ -703,7 +675,7 @@ def _operated_driver(
     calls a control of the driver from that thread (directly, or handed over with
     ``call_soon_threadsafe``), ``paused_wait()`` waits for the driver's next paused wait and
     records ``(sim time, tick times so far)``. Returns the records and every tick's time."""
-    selector = _PausedWaits()
+    selector = PausedWaits()
     seen: list[object] = []
     ticks: list[float] = []
     errors: list[BaseException] = []

@@ -3,10 +3,8 @@
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import math
-import selectors
 import signal
 import socket
 import threading
@@ -15,6 +13,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
+from _paused_waits import PausedWaits
 
 import evclock
 from evclock import Duration, InvalidArgumentError, SimEventLoop, Time
@@ -385,41 +384,12 @@ def test_futures_of_the_loop_are_bound_to_it_inside_and_outside_its_run() -> Non
 # ------------------------------------------- stepping a paused loop from an operator thread
 
 
-class _PausedWaits(selectors.DefaultSelector):
-    """Reports each time the loop waits with no timeout - paused, with nothing left to step
-    (``stall_timeout`` bounds every other wait) - as ``snapshot()``, taken on the loop's
-    thread, to the concurrent future of :meth:`expect`. The operator thread waits on that
-    future: a wait that never holds sim time, whatever its timeout (an ``Event.wait(10)``
-    would: it may be a delay)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.snapshot: Callable[[], object] = lambda: None
-        self._next: concurrent.futures.Future[object] | None = None
-        self._lock = threading.Lock()
-
-    def expect(self) -> concurrent.futures.Future[object]:
-        """The snapshot at the loop's next paused wait (ask before calling the control)."""
-        future: concurrent.futures.Future[object] = concurrent.futures.Future()
-        with self._lock:
-            self._next = future
-        return future
-
-    def select(self, timeout: float | None = None) -> list[Any]:
-        if timeout is None:
-            with self._lock:
-                future, self._next = self._next, None
-            if future is not None:
-                future.set_result(self.snapshot())
-        return list(super().select(timeout))
-
-
 class _Operator:
     """An operator thread's view of a paused loop: :meth:`control` calls a control
     (directly, or handed over with ``call_soon_threadsafe``), then waits for the loop's next
     paused wait and records ``(sim time, tick times so far)`` in :attr:`seen`."""
 
-    def __init__(self, loop: SimEventLoop, selector: _PausedWaits, via: str) -> None:
+    def __init__(self, loop: SimEventLoop, selector: PausedWaits, via: str) -> None:
         self.loop = loop
         self.via = via
         self.seen: list[object] = []
@@ -449,7 +419,7 @@ def _operated_run(
     """A task ticks every sim second (8 ticks) on a paused SimEventLoop on virtual time;
     once the loop first waits paused (recorded), an operator thread runs ``script``, which
     must end with ``resume()``. Returns the operator's records and every tick's time."""
-    selector = _PausedWaits()
+    selector = PausedWaits()
     loop = SimEventLoop(selector=selector, paused=start_paused, stall_timeout=10)
     ticks: list[float] = []
     selector.snapshot = lambda: (loop.time(), list(ticks))
