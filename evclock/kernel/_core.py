@@ -9,11 +9,13 @@ kernel's questions about the world around it (:class:`CoreHost`).
 The rule (docs/architecture.md, "The advancement rule"), in order:
 
 1. something due at the current time, or a task runnable         -> ``DUE``: run it
-2. outside work holds sim time (executor jobs, holds, threads)    -> ``HELD``: wait for it
-3. nothing scheduled and the source cannot move on its own:
+2. paused with no step left: a pause outranks every hold          -> ``PACING`` (no delay)
+3. outside work holds sim time (executor jobs, holds, threads;
+   while paused, not threads in timed waits)                      -> ``HELD``: wait for it
+4. nothing scheduled and the source cannot move on its own:
    something outside could wake us (I/O, threads, peers)          -> ``WAIT_IO``
    nothing could                                                   -> ``DEADLOCK``
-4. ask the source to advance toward the next deadline (gated by the pacer):
+5. ask the source to advance toward the next deadline (gated by the pacer):
    time moved                                                      -> ``MOVED``
    the pacer said "not yet"                                        -> ``PACING`` (wait
    :attr:`SimCore.pacing_delay` wall seconds; None: until a control changes)
