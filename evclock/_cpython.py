@@ -27,6 +27,7 @@ import asyncio
 import collections
 import concurrent.futures
 import concurrent.futures.thread
+import subprocess
 import sys
 import threading
 from asyncio import base_events, futures
@@ -63,11 +64,16 @@ def log_slow_callback(handle: asyncio.Handle, seconds: float) -> None:
     )
 
 
-#: The code object of ``BaseEventLoop._run_once``: a thread whose frames are in it runs a
-#: stock asyncio loop, whose selector timeout is its next timer (a real delay, which holds
-#: sim time), not a wait for I/O. If it changed: such a thread would be judged by its
-#: system call alone (tests/outside/test_outside.py, the anyio portal tests, show it).
-ASYNCIO_RUN_ONCE: Final[CodeType] = base_events.BaseEventLoop._run_once.__code__  # type: ignore[attr-defined]
+#: The name prefix of the threads asyncio's ``ThreadedChildWatcher`` starts, one per child
+#: process, each blocked in ``waitpid`` until its child exits (``asyncio-waitpid-N``, in
+#: Lib/asyncio/unix_events.py on 3.11, 3.12 and 3.13; 3.12+ use it only where pidfds are
+#: unavailable). Why: such a thread waits for a child of the loop's own subprocess transport,
+#: which the loop accounts for itself (awaited children hold sim time, idle servers do not);
+#: a thread of the program waiting for its own child holds sim time. If the name changed:
+#: those threads would hold sim time while any asyncio child runs (safe, but a long-lived
+#: child would stall sim time), which tests/outside/test_outside.py shows.
+ASYNCIO_CHILD_WATCHER_THREAD_PREFIX = "asyncio-waitpid-"
+
 
 #: Fields and methods of asyncio's objects that evclock uses in place, and the modules
 #: that do. A field's meaning is asyncio's (Lib/asyncio/events.py, futures.py, base_events.py,
@@ -214,6 +220,12 @@ JOIN_CODES: Final[frozenset[CodeType]] = frozenset(
         getattr(threading.Thread, "_wait_for_tstate_lock", threading.Thread.join).__code__,
     )
 )
+#: ``subprocess.Popen._execute_child``: a thread starting a child process blocks there in a
+#: ``read`` of its error pipe until the child has exec'd (3.11, 3.12 and 3.13). Why: that
+#: read is part of starting the child, work in progress, not a wait for the world outside.
+#: If it changed: a thread starting a child would not hold sim time for those milliseconds
+#: (a false timeout), which tests/outside/test_outside.py shows.
+POPEN_EXECUTE_CHILD: Final[CodeType] = subprocess.Popen._execute_child.__code__  # type: ignore[attr-defined]
 #: ``concurrent.futures.Future.result``/``exception``: what ``run_coroutine_threadsafe`` and
 #: anyio's ``from_thread`` block on.
 FUTURE_WAIT_CODES: Final[frozenset[CodeType]] = frozenset(

@@ -2,9 +2,10 @@
 
 For each thread of this process (``/proc/self/task/<tid>/``) and of a child process, the
 scheduler state (``stat``: runnable or not), how often it got a CPU (``schedstat``) and the
-system call it is blocked in with its arguments (``syscall``); for timed sleeps and futex
-waits, the timeout those arguments point to (read from ``/proc/<pid>/mem``). The thread-state
-inference of :mod:`evclock.outside._threads` turns these into "holds sim time or not".
+system call it is blocked in with its arguments (``syscall``); for timed sleeps, futex
+waits and waits on file descriptors, the timeout those arguments give or point to (read
+from ``/proc/<pid>/mem``). The thread-state inference of :mod:`evclock.outside._threads`
+turns these into "holds sim time or not".
 
 Everything here answers None (unknown) rather than guess when ``/proc`` cannot be read, on
 other platforms and architectures (x86_64 and aarch64 system call tables are known).
@@ -34,11 +35,14 @@ class ThreadState(enum.Enum):
     #: Waiting without timeout for another thread of this process (a lock, a condition, a
     #: queue, a join): it neither holds sim time nor can wake the loop by itself.
     PARKED = "parked"
-    #: Blocked on file descriptors or a child process (``recv``, ``accept``, ``read``,
-    #: ``select``, ``waitpid``), with or without a timeout (on I/O a timeout is a safety
-    #: bound): waiting for the world outside, often the loop's own sockets. It does not hold
-    #: sim time, but it may wake the loop.
+    #: Blocked on file descriptors with no timeout (``recv``, ``accept``, ``read``, a
+    #: ``select``/``poll`` with none): waiting for the world outside, often the loop's own
+    #: sockets, with no end of its own. It does not hold sim time, but it may wake the loop.
     WAITING_IO = "waiting for I/O"
+    #: Waiting for a child process it started to exit (``waitpid``/``wait4``/``waitid``:
+    #: ``subprocess.run``, ``Popen.wait``): the child is working for it. Holds sim time, as
+    #: the thread's own work would.
+    WAITING_CHILD = "waiting for a child process"
     #: A simulation loop waiting in its selector: it follows its own time.
     EVENT_LOOP = "an event loop waiting"
 
@@ -46,39 +50,44 @@ class ThreadState(enum.Enum):
 # ----------------------------------------------------------- the kernel's view (Linux)
 
 # System calls a blocked thread can sit in, by number, per architecture: (kind, timeout
-# argument, file-descriptor count argument). Kinds: "ms" an int of milliseconds (negative =
-# none), "ptr" a pointer (0 = none), FUTEX the futex rules, SLEEP a timed sleep, PAUSE no
-# timeout at all. The fd count is -1 when the call always watches descriptors (epoll), None
-# when it watches none. Any other system call (read, recv, accept, wait4, ...) is I/O.
-_Rule = tuple[str, int, int | None]
-FUTEX: _Rule = ("futex", 3, None)
-SLEEP: _Rule = ("sleep", 0, None)
-PAUSE: _Rule = ("pause", 0, None)
+# argument). Kinds: "ms" an int of milliseconds (negative = none), "ptr" a pointer to a
+# timespec (a timeval for select; 0 = none), FUTEX the futex rules, SLEEP a timed sleep,
+# PAUSE no timeout at all, CHILD a wait for a child process. Any other system call (read,
+# recv, accept, ...) is I/O with no timeout of its own.
+_Rule = tuple[str, int]
+FUTEX: _Rule = ("futex", 3)
+SLEEP: _Rule = ("sleep", 0)
+PAUSE: _Rule = ("pause", 0)
+CHILD: _Rule = ("child", 0)
 _X86_64: dict[int, _Rule] = {
-    7: ("ms", 2, 1),  # poll
-    23: ("ptr", 4, 0),  # select
+    7: ("ms", 2),  # poll
+    23: ("ptr", 4),  # select
     34: PAUSE,  # pause
     35: SLEEP,  # nanosleep
-    128: ("ptr", 2, None),  # rt_sigtimedwait
+    61: CHILD,  # wait4
+    128: ("ptr", 2),  # rt_sigtimedwait
     202: FUTEX,
     230: SLEEP,  # clock_nanosleep
-    232: ("ms", 3, -1),  # epoll_wait
-    270: ("ptr", 4, 0),  # pselect6
-    271: ("ptr", 2, 1),  # ppoll
-    281: ("ms", 3, -1),  # epoll_pwait
-    441: ("ptr", 3, -1),  # epoll_pwait2
-    449: ("ptr", 3, None),  # futex_waitv
+    232: ("ms", 3),  # epoll_wait
+    247: CHILD,  # waitid
+    270: ("ptr", 4),  # pselect6
+    271: ("ptr", 2),  # ppoll
+    281: ("ms", 3),  # epoll_pwait
+    441: ("ptr", 3),  # epoll_pwait2
+    449: ("ptr", 3),  # futex_waitv
 }
 _AARCH64: dict[int, _Rule] = {
-    22: ("ms", 3, -1),  # epoll_pwait
-    72: ("ptr", 4, 0),  # pselect6
-    73: ("ptr", 2, 1),  # ppoll
+    22: ("ms", 3),  # epoll_pwait
+    72: ("ptr", 4),  # pselect6
+    73: ("ptr", 2),  # ppoll
+    95: CHILD,  # waitid
     98: FUTEX,
     101: SLEEP,  # nanosleep
     115: SLEEP,  # clock_nanosleep
-    137: ("ptr", 2, None),  # rt_sigtimedwait
-    441: ("ptr", 3, -1),  # epoll_pwait2
-    449: ("ptr", 3, None),  # futex_waitv
+    137: ("ptr", 2),  # rt_sigtimedwait
+    260: CHILD,  # wait4
+    441: ("ptr", 3),  # epoll_pwait2
+    449: ("ptr", 3),  # futex_waitv
 }
 _SYSCALLS: dict[int, _Rule] | None = {"x86_64": _X86_64, "aarch64": _AARCH64}.get(
     os.uname().machine
@@ -87,12 +96,16 @@ _FUTEX_CMD_MASK = 0x7F  # without FUTEX_PRIVATE_FLAG (128) and FUTEX_CLOCK_REALT
 _FUTEX_WAITS = frozenset({0, 6, 9, 11, 13})  # WAIT, LOCK_PI, WAIT_BITSET, WAIT_REQUEUE_PI, LOCK_PI2
 
 
-def state_from_syscall(text: str, event_loop: bool) -> ThreadState:
+def state_from_syscall(text: str) -> ThreadState:
     """Classify one ``/proc/.../syscall`` line: "running", or "nr arg0 .. arg5 sp pc".
 
-    A wait on file descriptors (select, poll, epoll, a socket with a timeout) is waiting for
-    I/O whatever its timeout - a safety bound or a periodic check, not work - except in a
-    thread running an asyncio loop (``event_loop``), whose timeout is its next timer.
+    A wait with a timeout ends by itself and is timed work, whatever it waits on: a timed
+    sleep, a futex wait with a timeout, and a ``select``/``poll``/``epoll`` wait on file
+    descriptors with a timeout (a socket with ``settimeout``) are TIMED. A wait on
+    descriptors with no timeout is WAITING_IO; a wait for a child process is WAITING_CHILD.
+    A stock asyncio loop in a thread is no exception: its selector's timeout is its next
+    timer (a simulation loop waiting on its own time is told apart by its frames, in
+    :mod:`evclock.outside._threads`).
     """
     fields = text.split()
     if not fields or fields[0] == "running" or fields[0] == "-1":
@@ -101,20 +114,19 @@ def state_from_syscall(text: str, event_loop: bool) -> ThreadState:
     args = [int(value, 16) for value in fields[1:7]]
     rule = _SYSCALLS.get(int(fields[0]))
     if rule is None:
-        return ThreadState.WAITING_IO  # read, recv, accept, wait4, ...: no timeout of its own
+        return ThreadState.WAITING_IO  # read, recv, accept, ...: no timeout of its own
+    if rule is CHILD:
+        return ThreadState.WAITING_CHILD
     if rule is PAUSE:
         return ThreadState.PARKED  # pause(): only a signal ends it
     if rule is SLEEP:
         return ThreadState.TIMED
-    kind, timeout_arg, fds_arg = rule
+    kind, timeout_arg = rule
     if rule is FUTEX:
         command = args[1] & _FUTEX_CMD_MASK
         if command not in _FUTEX_WAITS:
             return ThreadState.RUNNING  # a wake or requeue: over in an instant
         return ThreadState.TIMED if args[timeout_arg] else ThreadState.PARKED
-    watches_fds = fds_arg is not None and (fds_arg < 0 or args[fds_arg] != 0)
-    if watches_fds and not event_loop:
-        return ThreadState.WAITING_IO
     value = args[timeout_arg]
     # "ms": a negative int means no timeout; "ptr": a null pointer does.
     timed = value & 0x80000000 == 0 if kind == "ms" else value != 0
@@ -224,9 +236,10 @@ _K = TypeVar("_K")
 _kernel_waits: dict[int, tuple[str, float]] = {}
 
 
-def _read_timespec(mem_fd: int, address: int) -> float | None:
-    """The ``struct timespec`` at ``address`` in the process whose ``mem`` file is
-    ``mem_fd`` (``/proc/<pid>/mem`` answers EIO rather than crash when the memory is gone)."""
+def _read_timeout(mem_fd: int, address: int, timeval: bool) -> float | None:
+    """The ``struct timespec`` (or ``struct timeval``, ``timeval``) at ``address`` in the
+    process whose ``mem`` file is ``mem_fd``, in seconds (``/proc/<pid>/mem`` answers EIO
+    rather than crash when the memory is gone)."""
     try:
         raw = os.pread(mem_fd, 16, address)
     except (OSError, OverflowError):
@@ -234,15 +247,36 @@ def _read_timespec(mem_fd: int, address: int) -> float | None:
     if len(raw) != 16:
         return None
     seconds = int.from_bytes(raw[:8], sys.byteorder, signed=True)
-    nanos = int.from_bytes(raw[8:], sys.byteorder, signed=True)
-    if seconds < 0 or not 0 <= nanos < 1_000_000_000:
-        return None  # not a timespec (the thread left the call meanwhile)
-    return seconds + nanos / 1e9
+    fraction = int.from_bytes(raw[8:], sys.byteorder, signed=True)
+    per_second = 1_000_000 if timeval else 1_000_000_000
+    if seconds < 0 or not 0 <= fraction < per_second:
+        return None  # not a timeout (the thread left the call meanwhile)
+    return seconds + fraction / per_second
 
 
-def _timed_call(text: str) -> tuple[int, bool, int] | None:
-    """For a ``syscall`` line of a timed sleep or futex wait: (address of its timespec,
-    whether that is an absolute deadline, the clock id); None for anything else."""
+#: Per architecture: the timed waits on file descriptors whose timeout is a length, by system
+#: call number -> (argument, unit): "ms" an int of milliseconds, "timespec"/"timeval" a
+#: pointer to one (select's timeval is only written back when the call returns).
+_FD_WAIT_TIMEOUTS: dict[int, tuple[int, str]] = (
+    {
+        7: (2, "ms"),  # poll
+        23: (4, "timeval"),  # select
+        232: (3, "ms"),  # epoll_wait
+        270: (4, "timespec"),  # pselect6
+        271: (2, "timespec"),  # ppoll
+        281: (3, "ms"),  # epoll_pwait
+        441: (3, "timespec"),  # epoll_pwait2
+    }
+    if _SYSCALLS is _X86_64
+    else {22: (3, "ms"), 72: (4, "timespec"), 73: (2, "timespec"), 441: (3, "timespec")}
+)
+
+
+def _timed_call(text: str) -> tuple[str, int, bool, int] | None:
+    """For a ``syscall`` line of a timed sleep, futex wait or wait on file descriptors:
+    (the unit of its timeout - "ms" for a value, "timespec"/"timeval" for a pointer -, that
+    value or address, whether it is an absolute deadline, the clock id); None for anything
+    else, or a wait without a timeout."""
     fields = text.split()
     if len(fields) < 7 or fields[0] in ("running", "-1"):
         return None
@@ -254,7 +288,7 @@ def _timed_call(text: str) -> tuple[int, bool, int] | None:
         if clock_arg is not None:
             clock = args[clock_arg]
         absolute = flags_arg is not None and bool(args[flags_arg] & _TIMER_ABSTIME)
-        return args[pointer_arg], absolute, clock
+        return "timespec", args[pointer_arg], absolute, clock
     if number == _FUTEX_NR:
         command = args[1] & _FUTEX_CMD_MASK
         if command not in (_FUTEX_WAIT, _FUTEX_WAIT_BITSET) or not args[3]:
@@ -262,7 +296,17 @@ def _timed_call(text: str) -> tuple[int, bool, int] | None:
         absolute = command == _FUTEX_WAIT_BITSET  # WAIT's timeout is a length
         if absolute and args[1] & _FUTEX_CLOCK_REALTIME:
             clock = time.CLOCK_REALTIME
-        return args[3], absolute, clock
+        return "timespec", args[3], absolute, clock
+    if number in _FD_WAIT_TIMEOUTS:
+        arg, unit = _FD_WAIT_TIMEOUTS[number]
+        value = args[arg]
+        if unit == "ms":
+            value &= 0xFFFFFFFF  # an int: negative means no timeout
+            if value & 0x80000000:
+                return None
+        elif not value:
+            return None
+        return unit, value, False, clock
     return None
 
 
@@ -274,13 +318,14 @@ def _timed_deadline(
     reread: Callable[[], str | None],
 ) -> float | None:
     """The monotonic deadline of the timed call ``text`` (see :func:`_timed_call`), read
-    from its timespec and confirmed by reading the call again (unchanged: the deadline
-    belongs to it); ``waits[key]`` keeps it per call, so that it stays one value."""
+    from its arguments (and the timeout they point to) and confirmed by reading the call
+    again (unchanged: the deadline belongs to it); ``waits[key]`` keeps it per call, so that
+    it stays one value."""
     call = _timed_call(text)
     if call is None:
         return None
-    pointer, absolute, clock = call
-    value = _read_timespec(mem_fd, pointer)
+    unit, where, absolute, clock = call
+    value = where / 1000 if unit == "ms" else _read_timeout(mem_fd, where, unit == "timeval")
     if value is None or reread() != text:
         return None
     try:
@@ -315,8 +360,9 @@ def _own_mem() -> int | None:
 
 def thread_wait_deadline(thread: threading.Thread) -> float | None:
     """When ``thread``'s timed system call ends by itself, in ``time.monotonic()`` seconds:
-    ``time.sleep`` (``clock_nanosleep`` with an absolute deadline), ``nanosleep``, and
-    futex waits with a timeout (``Lock.acquire(timeout=...)``, a C library's timed wait).
+    ``time.sleep`` (``clock_nanosleep`` with an absolute deadline), ``nanosleep``, futex
+    waits with a timeout (``Lock.acquire(timeout=...)``, a C library's timed wait) and waits
+    on file descriptors with a timeout (``select``, ``poll``, a socket with a timeout).
     None when unknown."""
     native_id = thread.native_id
     kernel = kernel_view
@@ -367,7 +413,7 @@ def child_wait_deadline(pid: int) -> tuple[str, float] | None:
             text = read()
             if text is None:
                 return None
-            state = state_from_syscall(text, event_loop=False)
+            state = state_from_syscall(text)
             if state is ThreadState.RUNNING:
                 return None
             if state is not ThreadState.TIMED:

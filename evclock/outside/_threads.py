@@ -32,11 +32,12 @@ import weakref
 from types import CodeType, FrameType
 
 from evclock._cpython import (
-    ASYNCIO_RUN_ONCE,
+    ASYNCIO_CHILD_WATCHER_THREAD_PREFIX,
     CONDITION_WAIT,
     FUTURE_WAIT_CODES,
     JOIN_CODES,
     POOL_WORKER,
+    POPEN_EXECUTE_CHILD,
     condition_wait_locals,
     current_frames,
     gil_enabled,
@@ -52,10 +53,16 @@ from evclock._procfs import (
 )
 
 #: States in which a thread keeps sim time from moving.
-HOLDING_STATES = frozenset({ThreadState.RUNNING, ThreadState.TIMED})
+HOLDING_STATES = frozenset({ThreadState.RUNNING, ThreadState.TIMED, ThreadState.WAITING_CHILD})
 #: States in which a thread may still wake the loop.
 WAKING_STATES = frozenset(
-    {ThreadState.RUNNING, ThreadState.TIMED, ThreadState.WAITING_IO, ThreadState.EVENT_LOOP}
+    {
+        ThreadState.RUNNING,
+        ThreadState.TIMED,
+        ThreadState.WAITING_IO,
+        ThreadState.WAITING_CHILD,
+        ThreadState.EVENT_LOOP,
+    }
 )
 
 # ---------------------------------------------------------------- frames (all platforms)
@@ -70,9 +77,6 @@ EVENT_LOOP_WAITS: set[CodeType] = set()
 #: ``concurrent.futures.Future.result`` (what ``run_coroutine_threadsafe`` and anyio's
 #: ``from_thread`` block on). Their timeout is a safety bound, not work: parked either way.
 _WAITS_ON_OTHERS: frozenset[CodeType] = JOIN_CODES | FUTURE_WAIT_CODES
-#: A stock asyncio loop's iteration: in a thread that waits in its selector, the timeout
-#: is the loop's next timer, a real delay (anyio's blocking portal sleeping, say).
-_ASYNCIO_LOOP = ThreadState.RUNNING  # marker returned by _waits_on_another_party
 #: How many frames outward from the innermost one are searched for a known wait: wrappers
 #: around lock acquisition (blockbuster, tracers) add a few.
 _FRAME_DEPTH = 6
@@ -90,8 +94,6 @@ def _waits_on_another_party(frame: FrameType | None) -> ThreadState | None:
             return ThreadState.EVENT_LOOP
         if code in _WAITS_ON_OTHERS:
             return ThreadState.PARKED
-        if code is ASYNCIO_RUN_ONCE:
-            return _ASYNCIO_LOOP
         frame = frame.f_back
     return None
 
@@ -139,6 +141,8 @@ def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadSta
     from_frames = _waits_on_another_party(frame)
     if from_frames is ThreadState.EVENT_LOOP:
         return from_frames
+    if frame is not None and frame.f_code is POPEN_EXECUTE_CHILD:
+        return ThreadState.WAITING_CHILD  # starting a child: blocked until it has exec'd
     native_id = thread.native_id
     text = (
         kernel_view.read(native_id, remember=True)
@@ -153,7 +157,14 @@ def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadSta
         woken = _state_from_frames(frame) is ThreadState.RUNNING
         return ThreadState.RUNNING if woken else ThreadState.PARKED
     if text is not None:
-        return state_from_syscall(text, event_loop=from_frames is _ASYNCIO_LOOP)
+        state = state_from_syscall(text)
+        if state is ThreadState.WAITING_CHILD and thread.name.startswith(
+            ASYNCIO_CHILD_WATCHER_THREAD_PREFIX
+        ):
+            # asyncio's own watcher of a child of the loop's subprocess transport: the loop
+            # accounts for that child itself (an awaited child holds, an idle server not).
+            return ThreadState.WAITING_IO
+        return state
     if frame is None:
         return ThreadState.RUNNING  # starting or finishing
     return _state_from_frames(frame)

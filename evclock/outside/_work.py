@@ -313,7 +313,7 @@ class OutsideWork:
             if unsent:
                 pending[key.fd] = unsent
         for thread, state in threads:
-            if state is ThreadState.WAITING_IO:
+            if state is ThreadState.WAITING_IO or state is ThreadState.TIMED:
                 for fd in waited_fds(thread):
                     unsent = _queued(fd, _TIOCOUTQ)
                     if unsent:

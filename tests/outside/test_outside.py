@@ -10,6 +10,7 @@ import functools
 import os
 import pathlib
 import queue
+import select
 import signal
 import socket
 import ssl
@@ -211,8 +212,43 @@ def test_a_signal_from_a_child_process_wakes_the_loop() -> None:
 # ------------------------------------------------------------------------ threads
 
 
-@pytest.mark.parametrize("wait", ["timer", "event", "queue"])
+def _timed_work_in_a_thread(wait: str) -> None:
+    """One kind of timed thread work, about 50 ms of wall time (docs/guides/outside.md)."""
+    if wait == "event":
+        threading.Event().wait(0.05)
+    elif wait == "queue":
+        with pytest.raises(queue.Empty):
+            queue.Queue().get(timeout=0.05)
+    elif wait in ("select", "poll", "socket_timeout"):
+        a, b = socket.socketpair()
+        with a, b:
+            if wait == "select":
+                assert select.select([a], [], [], 0.05) == ([], [], [])
+            elif wait == "poll":
+                poller = select.poll()
+                poller.register(a, select.POLLIN)
+                assert poller.poll(50) == []
+            else:
+                a.settimeout(0.05)
+                with pytest.raises(TimeoutError):
+                    a.recv(1)
+    elif wait == "subprocess_run":
+        subprocess.run(["sleep", "0.05"], check=True, timeout=30)
+    else:
+        assert wait == "popen_wait"
+        with subprocess.Popen(["sleep", "0.05"]) as child:
+            assert child.wait(timeout=30) == 0
+
+
+@pytest.mark.parametrize(
+    "wait",
+    ["timer", "event", "queue", "select", "poll", "socket_timeout", "subprocess_run", "popen_wait"],
+)
 def test_a_thread_that_waits_with_a_timeout_holds_sim_time(wait: str) -> None:
+    """Timed work in a plain thread holds sim time: a timed select/poll on a pipe or socket
+    and a wait for a child process the thread started, as a timed sleep or event wait does
+    (no false timeout: the wait_for's 1 s of sim time does not pass meanwhile)."""
+
     async def main() -> tuple[str, float]:
         loop = asyncio.get_running_loop()
         fut: asyncio.Future[str] = loop.create_future()
@@ -221,11 +257,7 @@ def test_a_thread_that_waits_with_a_timeout_holds_sim_time(wait: str) -> None:
             loop.call_soon_threadsafe(fut.set_result, wait)
 
         def worker() -> None:
-            if wait == "event":
-                threading.Event().wait(0.05)
-            else:
-                with pytest.raises(queue.Empty):
-                    queue.Queue().get(timeout=0.05)
+            _timed_work_in_a_thread(wait)
             deliver()
 
         if wait == "timer":
@@ -255,12 +287,12 @@ def test_a_long_timed_wait_lets_earlier_sim_timers_fire_first() -> None:
     assert evclock.run(main()) == ([True], 0.1)
 
 
-@pytest.mark.parametrize("wait", ["event", "time_sleep", "lock_timeout"])
+@pytest.mark.parametrize("wait", ["event", "time_sleep", "lock_timeout", "select", "poll"])
 def test_a_timed_wait_is_an_event_in_sim_time_that_earlier_timers_cannot_pass(wait: str) -> None:
     """A thread's timed wait of remaining wall length L, first seen at sim time t, ends at
     sim t + L: a series of earlier sim timers runs up to it, never past it (sim time then
     holds until the thread acts). Event.wait is timed from its frame; time.sleep and
-    Lock.acquire(timeout=...) from the deadline the kernel shows (Linux)."""
+    Lock.acquire(timeout=...), select and poll from the deadline the kernel shows (Linux)."""
 
     async def main() -> tuple[float, int]:
         loop = asyncio.get_running_loop()
@@ -272,6 +304,16 @@ def test_a_timed_wait_is_an_event_in_sim_time_that_earlier_timers_cannot_pass(wa
                 threading.Event().wait(1)
             elif wait == "time_sleep":
                 time.sleep(1)
+            elif wait == "select":
+                a, b = socket.socketpair()
+                with a, b:
+                    select.select([a], [], [], 1)
+            elif wait == "poll":
+                a, b = socket.socketpair()
+                with a, b:
+                    poller = select.poll()
+                    poller.register(a, select.POLLIN)
+                    poller.poll(1000)
             else:
                 lock = threading.Lock()
                 lock.acquire()
