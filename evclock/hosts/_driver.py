@@ -60,7 +60,7 @@ from evclock._errors import (
 from evclock.hosts._current import attach_clock, attached_clock, detach_clock
 from evclock.hosts._loop import SimEventLoop
 from evclock.kernel._clock import Clock, SimClock
-from evclock.kernel._core import DUE, HELD, MOVED, PACING, WAIT_SOURCE, SimCore
+from evclock.kernel._core import DUE, HELD, MOVED, PACING, WAIT_SOURCE, Settling, SimCore
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, PacingControls
 from evclock.kernel._source import TimeSource
 from evclock.kernel._virtual import VirtualTimeSource
@@ -271,6 +271,7 @@ class SimDriver(PacingControls):
         self._stopping = False
         self._wakeup: asyncio.Future[None] | None = None
         self._ready_queue: collections.deque[Any] | None = None
+        self._settling = Settling(1, max_settle_yields)
         self._probe = _WakeProbe(self)
         self._overran = False
         self._holds = 0
@@ -375,6 +376,9 @@ class SimDriver(PacingControls):
         self._core.now_ns = source.now_ns  # the source may have moved since (a former driver)
         self._loop = loop
         self._ready_queue = loop_ready_queue(loop)
+        # Exact where the ready queue is visible; by tasks, quiet must last (see the module).
+        needed = 1 if self._ready_queue is not None else _QUIET_CHECKS_BY_TASKS
+        self._settling = Settling(needed, self._max_settle_yields)
         self._previous_clock = previous
         attach_clock(loop, self._clock)
         self._state = _RUNNING
@@ -576,10 +580,13 @@ class SimDriver(PacingControls):
         ready = self._ready_queue
         return bool(ready) if ready is not None else bool(self._probe)
 
-    def time_held(self, paused: bool) -> bool:
-        """Whether :meth:`hold_time` holds sim time (the driver sees no threads: ``paused``
-        changes nothing here)."""
-        return self._holds > 0
+    def held_horizon(self, paused: bool) -> int | None:
+        """0 while :meth:`hold_time` holds sim time, else None (the driver sees no threads:
+        ``paused`` changes nothing here)."""
+        return 0 if self._holds > 0 else None
+
+    def before_moving(self) -> None:
+        """Nothing to take in: the host loop serves its own I/O while the driver yields."""
 
     def could_wake(self) -> bool:
         """Always: the host loop may serve I/O the driver cannot see, so idle is no deadlock."""
@@ -670,25 +677,21 @@ class SimDriver(PacingControls):
         return True
 
     async def _settle(self, *, stop_early: bool) -> None:
-        """Yield until the work woken at the current sim time is done (bounded)."""
-        needed = 1 if self._ready_queue is not None else _QUIET_CHECKS_BY_TASKS
-        quiet = 0
-        core = self._core
+        """Yield until the work woken at the current sim time is done, as the kernel's
+        :class:`~evclock.kernel._core.Settling` rule says (bounded)."""
+        settling = self._settling
+        settling.start()
         self._overran = False
-        for _ in range(self._max_settle_yields):
+        core = self._core
+        while True:
             await asyncio.sleep(0)
             if stop_early and self._stopping:
                 return
-            if core.due_now() and core.wake_due():
-                quiet = 0  # clock.sleep(0) and sleep_until(now) wake like a yield
-                continue
-            if self._quiescent():
-                quiet += 1
-                if quiet >= needed:
-                    return
-            else:
-                quiet = 0
-        if stop_early:
+            # clock.sleep(0) and sleep_until(now) wake like a yield
+            woke = core.due_now() and core.wake_due()
+            if settling.observe(woke, not woke and self._quiescent()):
+                break
+        if settling.overran and stop_early:
             self._overran = True
             self._lockstep_overruns += 1
 

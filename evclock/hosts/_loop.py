@@ -252,8 +252,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._tty_built_for: set[Any] | None = None  # compared whole, never iterated
         if paused:
             core.pacer.pause()
-        self._fast_path = False
-        self._update_fast_path()
         self._held_since: float | None = None
         # OUTSIDE HOOK: registered fds that deliver nothing by themselves: the self-pipe,
         # until a signal handler makes it carry signals (then it must be polled too).
@@ -268,14 +266,14 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             watch_threads=bool(watch_threads),
             sim_now=lambda: self._core.now_ns,
         )
-        #: What held sim time at the last time_held() (EXACT or INFERRED): how to wait.
+        #: What held sim time at the last held_horizon() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
         # EXTERNAL-SOURCE HOOK: fds whose traffic their owner accounts for exactly (the
         # clock server's participant connections): not inferred as work in flight.
         self._accounted_fds: set[int] = set()  # membership only, never iterated
         # I/O was polled after callbacks last ran: what that poll made ready is what
         # asyncio's per-iteration select would have, so running those callbacks needs no
-        # other zero-timeout poll first (a move of time always polls: time_held).
+        # other zero-timeout poll first (a move of time always polls: before_moving).
         self._io_fresh = False
         # EXTERNAL-SOURCE HOOK: whether the source is external (it may name its fd:
         # TimeSource.io_fd).
@@ -440,7 +438,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         while True:
             if ready or self._stopping:
                 # One poll between runs of callbacks, as asyncio's select: here when
-                # callbacks are ready, else in the rule (time_held, before time moves, or a
+                # callbacks are ready, else in the rule (before_moving, before time moves, or a
                 # wait).
                 if (
                     len(io_map) > self._quiet_fds  # OUTSIDE HOOK: real I/O or signals
@@ -449,11 +447,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                 ):
                     self._poll_io(0)  # what arrives is handled at the current sim time
             else:
-                # The short path when nothing else can matter (no pacing, no I/O, no outside
-                # work, no other thread, not an external source): straight to the next
-                # deadline and what is due there. Otherwise the full rule.
+                # The kernel's short path (rule step 0) when it allows one (no pacing, not an
+                # external source) and, as this loop reports, nothing outside can matter (no
+                # I/O, no outside work, no other thread); otherwise the full rule.
                 if (
-                    self._fast_path
+                    core.short_path
                     and len(io_map) <= self._quiet_fds
                     and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
                     and (
@@ -580,34 +578,33 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """Whether a callback is ready to run (the kernel does not advance then)."""
         return bool(self._ready)
 
-    def time_held(self, paused: bool = False) -> bool:
-        """Is sim time held by work outside the loop (holds, executor jobs, awaited child
-        processes, bytes in flight, busy threads: evclock/_outside.py)?
-
-        Threads held only in timed waits of known length let sim time move up to the
-        first of their ends (the outside model's horizon), as timers and thread timeouts
-        race on stock asyncio.
-        """
+    def held_horizon(self, paused: bool) -> int | None:
+        """What work outside the loop holds of sim time (holds, executor jobs, awaited
+        child processes, bytes in flight, busy threads: :mod:`evclock.outside`): None,
+        nothing; else how far sim time may still move (threads held only in timed waits of
+        known length: up to the first of their ends; 0 otherwise). The kernel decides."""
         if self._source_external and self._source_alone():
             self._holder = None  # EXTERNAL-SOURCE HOOK: nothing outside but the source
-            return False
-        holder = self._holder = self._outside.holder(timed_waits_hold=not paused)
-        if holder is not None:
-            horizon = self._outside.horizon_ns
-            if horizon is None:
-                return True
-            target = self._core.next_deadline()
-            if target is None or target - self._core.now_ns > horizon:
-                return True
-        # Time may move. Bytes that arrived since the last poll (a peer thread's reply, just
-        # delivered while the thread went back to waiting; a signal's byte on the self-pipe
-        # as an alarm hold ends) are handled first: the kernel finds them ready and does not
-        # advance. So this polls even when no callback ran since the last poll.
-        if len(self._io_map) > self._quiet_fds:
+            return None
+        outside = self._outside
+        holder = self._holder = outside.holder(timed_waits_hold=not paused)
+        if holder is None:
+            return None
+        horizon = outside.horizon_ns
+        return 0 if horizon is None else horizon
+
+    def before_moving(self) -> None:
+        """Sim time may move: bytes that arrived since the last poll (a peer thread's reply,
+        just delivered while the thread went back to waiting; a signal's byte on the
+        self-pipe as an alarm hold ends) are taken in first; the kernel finds their callbacks
+        ready and does not advance. So this polls even when no callback ran since the last
+        poll."""
+        if len(self._io_map) > self._quiet_fds and not (
+            self._source_external and self._source_alone()
+        ):
             if self._epoll:
                 self._hand_over_tty_input()
             self._poll_io(0)
-        return False
 
     def _hand_over_tty_input(self) -> None:
         """Bytes written to a terminal the loop reads (a pty) reach its read queue through
@@ -817,15 +814,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         finally:
             self.release_hold()
 
-    def _update_fast_path(self) -> None:
-        # Without pacing the loop may advance straight to the next deadline, unless the
-        # source waits for the outside (external-source contract: never take the short path).
-        self._fast_path = self._core.pacer.unpaced and not self._source.external
-
-    # ------------------------------------------------------------ pacing API
-
     def _pacing_changed(self) -> None:
-        self._update_fast_path()
+        self._core.pacing_changed()
 
     # OUTSIDE HOOK: a control called from another thread (a GUI, an operator) changes the
     # pacer there and hands the loop its reaction, which wakes a pacing or pause wait
@@ -841,7 +831,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _stepping_until(self, when_ns: int) -> None:
         self._core.stop_at(when_ns)  # virtual time stops exactly there
-        self._update_fast_path()
+        self._core.pacing_changed()
 
     def _require_running(self, what: str) -> None:
         self._check_closed()

@@ -8,10 +8,17 @@ kernel's questions about the world around it (:class:`CoreHost`).
 
 The rule (docs/architecture.md, "The advancement rule"), in order:
 
+0. the short path: no pacing, not an external source (:attr:`SimCore.short_path`) and, as
+   the host reports, nothing outside (no I/O, outside work or other thread): straight to
+   the next deadline and wake what is due there (:meth:`SimCore.wake_next`); it is steps
+   1, 4 and 5 below for that case. Otherwise:
+
 1. something due at the current time, or a task runnable         -> ``DUE``: run it
 2. paused with no step left: a pause outranks every hold          -> ``PACING`` (no delay)
-3. outside work holds sim time (executor jobs, holds, threads;
-   while paused, not threads in timed waits)                      -> ``HELD``: wait for it
+3. outside work holds sim time (executor jobs, holds, children, threads;
+   while paused, not threads in timed waits), and the next
+   deadline lies beyond what the hold lets move (a thread's timed
+   wait of known length is an event ahead: earlier ones fire)     -> ``HELD``: wait for it
 4. nothing scheduled and the source cannot move on its own:
    something outside could wake us (I/O, threads, peers)          -> ``WAIT_IO``
    nothing could                                                   -> ``DEADLOCK``
@@ -156,12 +163,20 @@ class CoreHost(Protocol):
         """Is anything else runnable at the current time (a task, a callback)?"""
         ...
 
-    def time_held(self, paused: bool) -> bool:
-        """Is sim time held by work outside the host (executor jobs, holds, busy threads)?
+    def held_horizon(self, paused: bool) -> int | None:
+        """What work outside the host (executor jobs, holds, children, busy threads) holds
+        of sim time: None, nothing; otherwise how many nanoseconds sim time may still move
+        before the hold applies - 0 for none at all; a thread's timed wait of known length
+        is an event ahead, which earlier deadlines may reach (the kernel decides).
 
         ``paused``: the host is paused (time moves only by steps), so sim time and wall
         time are decoupled and a thread's timed wait is no event on sim time: it does not
         hold. Running threads, executor jobs, children and explicit holds still do."""
+        ...
+
+    def before_moving(self) -> None:
+        """Sim time is about to move: take in what arrived from outside meanwhile (poll
+        I/O), so that work it makes ready runs at the current time first."""
         ...
 
     def could_wake(self) -> bool:
@@ -184,6 +199,46 @@ class CoreHost(Protocol):
 
     @property
     def clock(self) -> SimClock: ...
+
+
+class Settling:
+    """The rule's step for a host that cannot see every task (:class:`~evclock.SimDriver`
+    on a loop evclock does not own): before time moves, the work woken at the current time
+    must settle. The host yields to its loop and reports what it saw after each yield
+    (:meth:`observe`); settled after ``needed`` quiet looks in a row (a wait due now that
+    was woken starts the count again, as a yield does); after ``limit`` looks time moves
+    anyway, an overrun (:attr:`overran`).
+    """
+
+    __slots__ = ("limit", "looks", "needed", "overran", "quiet")
+
+    def __init__(self, needed: int, limit: int) -> None:
+        self.needed = needed
+        self.limit = limit
+        self.looks = 0
+        self.quiet = 0
+        #: Whether the last settling ran out of looks (time then moves anyway).
+        self.overran = False
+
+    def start(self) -> None:
+        """New work was woken: settle it from the start."""
+        self.looks = self.quiet = 0
+        self.overran = False
+
+    def observe(self, woke_due: bool, quiescent: bool) -> bool:
+        """One look after a yield: ``woke_due``, waits due now were woken; ``quiescent``,
+        nothing else looked runnable. True once time may move (settled, or out of looks)."""
+        self.looks += 1
+        if woke_due or not quiescent:
+            self.quiet = 0
+        else:
+            self.quiet += 1
+            if self.quiet >= self.needed:
+                return True
+        if self.looks >= self.limit:
+            self.overran = True
+            return True
+        return False
 
 
 class SimCore:
@@ -236,6 +291,10 @@ class SimCore:
         # (wake_next) moves it itself instead of calling its advance() (exact type only: a
         # subclass may override advance()).
         self._virtual = source if type(source) is VirtualTimeSource else None
+        #: Whether the short path (:meth:`wake_next`) may be taken, as far as the kernel
+        #: knows: no pacing and no external source (the host adds what it sees outside).
+        self.short_path = False
+        self.pacing_changed()
 
     def _read_now(self) -> int:
         return self.now_ns
@@ -480,6 +539,12 @@ class SimCore:
 
     # ------------------------------------------------------------- the rule
 
+    def pacing_changed(self) -> None:
+        """A pacing control changed (rtf, pause, step, step_until): re-decide whether the
+        short path may be taken. Without pacing the host may advance straight to the next
+        deadline, unless the source waits for the outside (never the short path then)."""
+        self.short_path = self.pacer.unpaced and not self.source.external
+
     def advance(self) -> int:
         """Nothing ran at the current time: decide and, if possible, move time (see module)."""
         target = self.next_deadline()
@@ -492,8 +557,10 @@ class SimCore:
             # the host waits as paused (unbounded), not as held (bounded by stall_timeout).
             self.pacing_delay = None
             return PACING
-        if host.time_held(pacer.paused):
-            return HELD
+        horizon = host.held_horizon(pacer.paused)
+        if horizon is not None and (target is None or target - self.now_ns > horizon):
+            return HELD  # (a hold with a horizon lets earlier deadlines fire first)
+        host.before_moving()
         if self._anything_runnable():
             return DUE  # a thread handed work over (and ended) while the host looked
         source = self.source
@@ -512,58 +579,19 @@ class SimCore:
         return DUE  # a step hook woke a task before time could move
 
     def wake_next(self, ready: Any) -> bool:
-        """The hot path, when the host checked that nothing else can matter (no pacing, no
-        I/O, no outside work, nothing ready): advance straight to the next deadline and fire
-        what is due there. False if nothing is scheduled (the host applies :meth:`advance`).
+        """The short path (rule step 0), when the host checked that nothing else can matter
+        (no pacing, no I/O, no outside work, nothing ready): advance straight to the next
+        deadline and fire what is due there. False if nothing is scheduled (the host applies
+        :meth:`advance`).
 
         Same order as :meth:`take_due` then :meth:`fire`; if the advance itself made work
-        ready (a step hook), the host runs it first.
+        ready (a step hook), the host runs it first. The common case - one task waits alone
+        at the next deadline, on a ``clock.sleep`` future or ``asyncio.sleep``'s timer - is
+        woken here in place, with no ``Handle``: this is the one wake routine of the kernel.
         """
         heap = self.heap
         at = self.at
-        virtual = self._virtual
-        # The common case first: one task waits alone at the next deadline (deadlines are
-        # distinct), later than now, on the default source, on a clock.sleep future or on
-        # asyncio.sleep's timer (a cancelled timer has no callback).
-        if virtual is not None and heap:
-            when = heap[0]
-            if when > self.now_ns:
-                entry = at[when]
-                if type(entry) is _Future:
-                    fut, result = entry, None
-                elif (
-                    isinstance(entry, _TimerHandle)
-                    and entry._callback is _SET_RESULT_UNLESS_CANCELLED
-                ):
-                    fut, result = entry._args
-                    entry._scheduled = False  # leaves the heap below (else restored)
-                else:
-                    fut = None
-                if fut is not None:
-                    try:
-                        # Exactly one done-callback (a task's wake-up): the future is
-                        # pending, as a future drops its callbacks when it completes.
-                        ((callback, ctx),) = fut._callbacks
-                    except (TypeError, ValueError, AttributeError):
-                        # done, several waiters, none, not a future: below
-                        if fut is not entry:
-                            entry._scheduled = True
-                    else:
-                        virtual.now_ns = self.now_ns = when
-                        _heappop(heap)
-                        del at[when]
-                        # wake the task here (as below; inlined in both, as the hot paths
-                        # of virtual time and of stepping sources)
-                        fut.remove_done_callback(callback)
-                        fut.set_result(result)
-                        try:
-                            ctx.run(callback, fut)
-                        except (SystemExit, KeyboardInterrupt):
-                            raise
-                        except BaseException as exc:
-                            self._report_wakeup_error(exc)
-                        return True
-        # Every other case: timers, buckets, dead entries, stepping sources, entries due now.
+        # Drop what can no longer fire at the head: done futures, cancelled timers.
         while heap:
             when = heap[0]
             obj = at[when]
@@ -583,6 +611,7 @@ class SimCore:
             return False
         now = self.now_ns
         if when > now:
+            virtual = self._virtual
             if virtual is not None:
                 # VirtualTimeSource.advance(when, None), inlined: it moves exactly to any
                 # later target (the hot path's one call saved)
@@ -597,7 +626,8 @@ class SimCore:
                 obj = at[when]
         _heappop(heap)
         del at[when]
-        if type(obj) is not _Bucket and (not heap or heap[0] > now):  # alone and due
+        # Deadlines are distinct in the heap: ``obj`` is alone unless it was overdue.
+        if type(obj) is not _Bucket and (not heap or heap[0] > now):
             if type(obj) is _Future:
                 fut, result = obj, None
             elif isinstance(obj, _TimerHandle):
@@ -612,7 +642,9 @@ class SimCore:
                 fut, result = obj, None  # a future of another type (a foreign loop's)
             if fut is not None and not fut.done():
                 try:
-                    ((callback, ctx),) = fut._callbacks  # one task waits: inline
+                    # Exactly one done-callback (a task's wake-up): run it here. A pending
+                    # future keeps its callbacks in a list (a C future: None when empty).
+                    ((callback, ctx),) = fut._callbacks
                 except (TypeError, ValueError):
                     self._wake_in_place(fut, result)  # several waiters, or none
                 else:

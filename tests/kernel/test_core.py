@@ -26,8 +26,11 @@ class ScriptedHost:
     def anything_runnable(self) -> bool:
         return self.runnable
 
-    def time_held(self, paused: bool) -> bool:
-        return self.held
+    def held_horizon(self, paused: bool) -> int | None:
+        return 0 if self.held else None
+
+    def before_moving(self) -> None:
+        pass
 
     def could_wake(self) -> bool:
         return self.wakeable
@@ -91,7 +94,7 @@ def test_a_pause_outranks_a_hold_and_a_step_asks_whether_paused(
     seen: list[bool] = []
     core, host = make(loop)
     host.held = True
-    host.time_held = lambda paused: seen.append(paused) or host.held  # type: ignore[method-assign]
+    host.held_horizon = lambda paused: seen.append(paused) or (0 if host.held else None)  # type: ignore[method-assign]
     core.stop_at(5)
     core.pacer.pause()
     assert core.advance() == PACING  # paused, no step left: wait for a control, unbounded
