@@ -1,9 +1,11 @@
 """Stamped data on sim time: stamps, synchronisers, time-indexed buffers, stamp diagnostics.
 
 ``from evclock.data import ApproximateTimeSynchronizer, TimeBuffer``. Messages carry stamps
-in a clock domain; synchronisers group streams by stamp (exact, and ROS's ApproximateTime
-policy); a :class:`TimeBuffer` answers "the value at time t"; :class:`StampDiagnostics` shows
-stamp age and consumers falling behind.
+in a clock domain; synchronisers group streams by stamp (exact, ROS's ApproximateTime,
+ApproximateEpsilonTime and LatestTime policies, bit-exact with ROS 2's ``message_filters``);
+filters chain into pipelines (:class:`PassThrough` -> :class:`Cache` -> synchroniser,
+:class:`TimeSequencer`); a :class:`TimeBuffer` answers "the value at time t";
+:class:`StampDiagnostics` shows stamp age and consumers falling behind.
 
 Layer: above the hosts (it reads the running loop's clock). ``TimeBuffer`` needs numpy and is
 imported on first use.
@@ -18,16 +20,38 @@ from evclock.data._diagnostics import (
     StreamAgeStats,
     diagnostics_report,
 )
+from evclock.data._filters import (
+    Cache,
+    Chain,
+    Connection,
+    PassThrough,
+    SimpleFilter,
+    TimeSequencer,
+)
+from evclock.data._policies import DROP_REASONS
 from evclock.data._stamped import StampClock, Stamped, StampKey, stamp_of
-from evclock.data._sync import ApproximateTimeSynchronizer, TimeSynchronizer
+from evclock.data._sync import (
+    ApproximateEpsilonTimeSynchronizer,
+    ApproximateTimeSynchronizer,
+    LatestTimeSynchronizer,
+    TimeSynchronizer,
+)
 
 if TYPE_CHECKING:
     from evclock.data._buffer import Interpolation, TimeBuffer
 
 __all__ = [
+    "DROP_REASONS",
+    "ApproximateEpsilonTimeSynchronizer",
     "ApproximateTimeSynchronizer",
+    "Cache",
+    "Chain",
+    "Connection",
     "ExtrapolationError",
     "Interpolation",
+    "LatestTimeSynchronizer",
+    "PassThrough",
+    "SimpleFilter",
     "StampClock",
     "StampDiagnostics",
     "StampKey",
@@ -36,6 +60,7 @@ __all__ = [
     "StreamAgeStats",
     "TimeBuffer",
     "TimeLookupError",
+    "TimeSequencer",
     "TimeSynchronizer",
     "diagnostics_report",
     "stamp_of",

@@ -45,11 +45,18 @@ _NS_PER_S: Final = 1_000_000_000
 _CDR_BE: Final = b"\x00\x00"
 _CDR_LE: Final = b"\x00\x01"
 _GID_SIZE: Final = 16
-CLOCK_QOS: Final = "2::,1:,:,:,,"
-"""rclcpp's ClockQoS (sensor-data profile with depth 1: BEST_EFFORT, VOLATILE, KEEP_LAST 1) as
-rmw_zenoh encodes it in liveliness tokens: only the fields that differ from its defaults
-(RELIABLE, VOLATILE, KEEP_LAST 42, infinite deadline/lifespan/lease, AUTOMATIC liveliness) are
-written."""
+CLOCK_QOS: Final = "2:2:,1:,:,:,,"
+"""rclcpp's ClockQoS (BEST_EFFORT, VOLATILE, KEEP_LAST 1) in the QoS field of liveliness tokens.
+
+rmw_zenoh writes only the fields that differ from its defaults and its readers fill an empty
+field with *their* defaults: KEEP_LAST 42, RELIABLE, infinite deadline/lifespan/lease and
+AUTOMATIC liveliness in every release, but the default durability changed between patch
+releases - TRANSIENT_LOCAL in Humble 0.1.0-0.1.1 and Jazzy 0.2.0-0.2.2, VOLATILE from
+Humble 0.1.2, Jazzy 0.2.3 and in every Kilted and Rolling release (0.6.0+). So the durability
+is always written (``2``: VOLATILE), which every release reads as VOLATILE; reliability
+(``2``: BEST_EFFORT) and depth (``1``) differ from every default and are written anyway.
+Fields: ``reliability:durability:history,depth:deadline s,ns:lifespan s,ns:liveliness,lease
+s,ns``."""
 
 _NAME_SEGMENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 

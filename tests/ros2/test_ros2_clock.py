@@ -182,7 +182,7 @@ def test_publisher_sends_rmw_zenoh_samples_and_tokens(endpoint: str) -> None:
             assert any("/NN/%/%/evclock_clock" in t for t in tokens)
             assert any(
                 t.endswith(
-                    f"/MP/%/%/evclock_clock/%clock/rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}/2::,1:,:,:,,"
+                    f"/MP/%/%/evclock_clock/%clock/rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}/2:2:,1:,:,:,,"
                 )
                 for t in tokens
             )

@@ -158,13 +158,14 @@ def test_liveliness_tokens_follow_rmw_zenoh_layout() -> None:
     token = endpoint_token("MP", 0, ZID, 0, 1, "evclock_clock", "/clock")
     assert token == (
         f"@ros2_lv/0/{ZID}/0/1/MP/%/%/evclock_clock/%clock/"
-        f"rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}/2::,1:,:,:,,"
+        f"rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}/2:2:,1:,:,:,,"
     )
     parts = token.split("/")
     assert len(parts) == 13  # admin space .. qos, as rmw_zenoh's parser requires
     assert all(parts)  # no empty part: rmw_zenoh rejects those
     qos = CLOCK_QOS.split(":")
     assert qos[0] == "2"  # BEST_EFFORT (rclcpp's ClockQoS)
+    assert qos[1] == "2"  # VOLATILE, always written (see the per-release test below)
     assert qos[2] == ",1"  # KEEP_LAST (default, empty), depth 1
     humble = endpoint_token("MS", 0, ZID, 0, 1, "n", "/a/clock", WIRE_FORMATS["humble"])
     assert f"/%a%clock/rosgraph_msgs::msg::dds_::Clock_/{HUMBLE_TYPE_HASH}/" in humble
@@ -309,3 +310,143 @@ def test_import_evclock_does_not_import_zenoh() -> None:
         [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True
     )
     assert out.stdout.strip() == "[]"
+
+
+# -- the QoS field, release by release ---------------------------------------------------------
+#
+# Data derived from each rmw_zenoh_cpp release's own sources (not copied code): the defaults its
+# ``src/detail/qos.cpp`` (``RMW_ZENOH_DEFAULT_*``) fills in, and its ``keyexpr_to_qos`` rule in
+# ``src/detail/liveliness_utils.cpp``: a field written empty takes the reader's default, a
+# written field is read as the rmw enum value (rmw/types.h: reliability 1 RELIABLE, 2
+# BEST_EFFORT; durability 1 TRANSIENT_LOCAL, 2 VOLATILE; history 1 KEEP_LAST, 2 KEEP_ALL;
+# liveliness 1 AUTOMATIC). Writers since #266 (Aug 2024, before the first release) omit the
+# fields equal to their own defaults. The default durability changed with #521 (backported as
+# #531 to Humble 0.1.2 and #530 to Jazzy 0.2.3).
+
+_TL, _VOLATILE = 1, 2
+_INFINITE = (9223372036, 854775807)  # RMW_DURATION_INFINITE: {sec, nsec}
+
+RMW_ZENOH_RELEASES: dict[str, int] = {
+    # release -> its default durability; every other default is the same in all of them:
+    # KEEP_LAST, depth 42, RELIABLE, infinite deadline/lifespan/lease, AUTOMATIC liveliness.
+    "humble 0.1.0": _TL,
+    "humble 0.1.1": _TL,
+    "humble 0.1.2": _VOLATILE,
+    "humble 0.1.7": _VOLATILE,
+    "jazzy 0.2.0": _TL,
+    "jazzy 0.2.2": _TL,
+    "jazzy 0.2.3": _VOLATILE,
+    "jazzy 0.2.4": _VOLATILE,
+    "kilted 0.6.0": _VOLATILE,
+    "rolling 0.6.0": _VOLATILE,
+}
+
+
+def _defaults(release: str) -> dict[str, object]:
+    return {
+        "reliability": 1,
+        "durability": RMW_ZENOH_RELEASES[release],
+        "history": 1,
+        "depth": 42,
+        "deadline": _INFINITE,
+        "lifespan": _INFINITE,
+        "liveliness": 1,
+        "lease": _INFINITE,
+    }
+
+
+def read_qos(field: str, release: str) -> dict[str, object]:
+    """How ``release`` reads a token's QoS field (a model of its keyexpr_to_qos)."""
+    d = _defaults(release)
+    parts = field.split(":")
+    assert len(parts) >= 6  # fewer: the reader rejects the token
+    history, deadline, lifespan, liveliness = (p.split(",") for p in parts[2:6])
+    assert min(len(history), len(deadline), len(lifespan)) >= 2
+    assert len(liveliness) >= 3
+
+    def num(text: str, default: object) -> object:
+        return default if text == "" else int(text)
+
+    return {
+        "reliability": num(parts[0], d["reliability"]),
+        "durability": num(parts[1], d["durability"]),
+        "history": num(history[0], d["history"]),
+        "depth": num(history[1], d["depth"]),
+        "deadline": d["deadline"] if deadline == ["", ""] else tuple(map(int, deadline)),
+        "lifespan": d["lifespan"] if lifespan == ["", ""] else tuple(map(int, lifespan)),
+        "liveliness": num(liveliness[0], d["liveliness"]),
+        "lease": d["lease"] if liveliness[1:] == ["", ""] else tuple(map(int, liveliness[1:])),
+    }
+
+
+def write_qos(qos: dict[str, object], release: str) -> str:
+    """What ``release``'s own publisher writes for ``qos`` (a model of its qos_to_keyexpr)."""
+    d = _defaults(release)
+
+    def f(key: str, value: object) -> str:
+        return "" if qos[key] == d[key] else str(value)
+
+    def pair(key: str) -> str:
+        value = qos[key]
+        assert isinstance(value, tuple)
+        default = d[key]
+        assert isinstance(default, tuple)
+        sec = "" if value[0] == default[0] else str(value[0])
+        nsec = "" if value[1] == default[1] else str(value[1])
+        return f"{sec},{nsec}"
+
+    return (
+        f"{f('reliability', qos['reliability'])}:{f('durability', qos['durability'])}:"
+        f"{f('history', qos['history'])},{f('depth', qos['depth'])}:{pair('deadline')}:"
+        f"{pair('lifespan')}:{f('liveliness', qos['liveliness'])},{pair('lease')}"
+    )
+
+
+CLOCK_QOS_PROFILE = {  # rclcpp::ClockQoS: KEEP_LAST 1, BEST_EFFORT, VOLATILE, the rest default
+    "reliability": 2,
+    "durability": _VOLATILE,
+    "history": 1,
+    "depth": 1,
+    "deadline": _INFINITE,
+    "lifespan": _INFINITE,
+    "liveliness": 1,
+    "lease": _INFINITE,
+}
+
+
+@pytest.mark.parametrize("release", sorted(RMW_ZENOH_RELEASES))
+def test_every_release_reads_the_clock_qos_as_clockqos(release: str) -> None:
+    assert read_qos(CLOCK_QOS, release) == CLOCK_QOS_PROFILE
+
+
+@pytest.mark.parametrize(
+    ("release", "native"),
+    [
+        # Golden: the QoS field a native rclcpp ClockQoS publisher of each release writes.
+        ("humble 0.1.0", "2:2:,1:,:,:,,"),
+        ("humble 0.1.1", "2:2:,1:,:,:,,"),
+        ("humble 0.1.2", "2::,1:,:,:,,"),
+        ("jazzy 0.2.0", "2:2:,1:,:,:,,"),
+        ("jazzy 0.2.2", "2:2:,1:,:,:,,"),
+        ("jazzy 0.2.3", "2::,1:,:,:,,"),
+        ("kilted 0.6.0", "2::,1:,:,:,,"),
+        ("rolling 0.6.0", "2::,1:,:,:,,"),
+    ],
+)
+def test_golden_native_fields_and_the_old_encoding(release: str, native: str) -> None:
+    assert write_qos(CLOCK_QOS_PROFILE, release) == native
+    # evclock's field and the release's own read the same everywhere...
+    assert read_qos(CLOCK_QOS, release) == read_qos(native, release)
+    # ...whereas the field evclock wrote before (durability omitted) reads as TRANSIENT_LOCAL
+    # where that was the default.
+    old = read_qos("2::,1:,:,:,,", release)["durability"]
+    assert old == RMW_ZENOH_RELEASES[release]
+
+
+@pytest.mark.parametrize("fmt", sorted(WIRE_FORMATS))
+def test_golden_publisher_tokens_per_wire_format(fmt: str) -> None:
+    type_hash = HUMBLE_TYPE_HASH if fmt.startswith("humble") else CLOCK_TYPE_HASH
+    assert endpoint_token("MP", 7, ZID, 3, 4, "sim", "/clock", WIRE_FORMATS[fmt]) == (
+        f"@ros2_lv/7/{ZID}/3/4/MP/%/%/sim/%clock/rosgraph_msgs::msg::dds_::Clock_/"
+        f"{type_hash}/2:2:,1:,:,:,,"
+    )
