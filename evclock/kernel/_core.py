@@ -457,12 +457,15 @@ class SimCore:
         """Fire entries from :meth:`take_due`, in (when, seq) order, on a SimEventLoop.
 
         The order is exactly stock asyncio's: a timer callback runs here; a resolved sleep's
-        wake-ups (its task's step) go to the end of the ready queue - except that the last
-        due entry, when nothing is queued yet, wakes its waiters in place: they would have
-        been the very next callbacks to run anyway, and no Handle is allocated.
+        wake-ups (its task's step) run after every entry of the batch, in order - queued
+        at the end of the ready queue. When nothing was queued before the batch, and none
+        of its plain callbacks queues anything, those wake-ups would be the very next
+        callbacks to run, in that order: they run here, in place, with no ``Handle``
+        (every future resolved first, so each step sees the others' futures done, as on
+        stock asyncio).
         """
-        last = len(due) - 1
-        for i, obj in enumerate(due):
+        in_place: list[tuple[Any, Any, asyncio.Future[Any]]] | None = None if ready else []
+        for obj in due:
             if obj is _STOP:
                 continue
             if not isinstance(obj, _TimerHandle):
@@ -475,25 +478,44 @@ class SimCore:
                     self._cancelled_timers -= 1
                     continue
                 if obj._callback is not _SET_RESULT_UNLESS_CANCELLED or obj._args[0].done():
+                    if in_place:
+                        # A plain callback may queue work, which must come after the
+                        # wake-ups collected so far: queue them as asyncio would have.
+                        self._queue_wakeups(in_place, ready)
+                    in_place = None
                     obj._run()
                     continue
                 fut, result = obj._args
-            if i == last and not ready:
-                self._wake_in_place(fut, result)
-            else:
+            if in_place is None:
                 fut.set_result(result)
+                continue
+            # a copy (the pure-Python future returns its own list; a C one None when empty)
+            callbacks = fut._callbacks
+            if callbacks:
+                for callback, ctx in list(callbacks):
+                    fut.remove_done_callback(callback)
+                    in_place.append((callback, ctx, fut))
+            fut.set_result(result)
+        if in_place:
+            self._run_wakeups(in_place, ready)
 
-    def _wake_in_place(self, fut: asyncio.Future[Any], result: object) -> None:
-        """Resolve ``fut`` and run its done-callbacks right here (no call_soon hop)."""
-        # a copy (the pure-Python future returns its own list; a C one None when empty)
-        callbacks = list(fut._callbacks or ())
-        for callback, _ctx in callbacks:
-            fut.remove_done_callback(callback)
-        fut.set_result(result)
-        for callback, ctx in callbacks:
+    def _queue_wakeups(self, wakeups: list[tuple[Any, Any, Any]], ready: Any) -> None:
+        """Queue collected wake-ups at the end of the ready queue, in order."""
+        loop = self.host
+        for callback, ctx, fut in wakeups:
+            ready.append(asyncio.Handle(callback, (fut,), loop, ctx))  # type: ignore[arg-type]
+
+    def _run_wakeups(self, wakeups: list[tuple[Any, Any, Any]], ready: Any) -> None:
+        """Run collected wake-ups in place, in order (what would run next anyway); if one
+        raises SystemExit or KeyboardInterrupt, the rest are queued first, as they were."""
+        for i, (callback, ctx, fut) in enumerate(wakeups):
             try:
                 ctx.run(callback, fut)
             except (SystemExit, KeyboardInterrupt):
+                rest = wakeups[i + 1 :]
+                loop = self.host
+                for callback, ctx, fut in reversed(rest):
+                    ready.appendleft(asyncio.Handle(callback, (fut,), loop, ctx))  # type: ignore[arg-type]
                 raise
             except BaseException as exc:
                 self._report_wakeup_error(exc)
@@ -591,73 +613,101 @@ class SimCore:
         """
         heap = self.heap
         at = self.at
-        # Drop what can no longer fire at the head: done futures, cancelled timers.
-        while heap:
+        virtual = self._virtual
+        fut: Any = None
+        # The common case first: one task waits alone at the next deadline (deadlines are
+        # distinct), later than now, on the default source, on a clock.sleep future or on
+        # asyncio.sleep's timer. A done future has no callbacks, a cancelled timer no
+        # callback: both fail the unpacking below and take the general path.
+        if virtual is not None and heap:
             when = heap[0]
-            obj = at[when]
-            if type(obj) is _Future:
-                if not obj.done():
+            if when > self.now_ns:
+                obj = at[when]
+                if type(obj) is _Future:
+                    fut, result = obj, None
+                elif (
+                    isinstance(obj, _TimerHandle) and obj._callback is _SET_RESULT_UNLESS_CANCELLED
+                ):
+                    fut, result = obj._args
+                if fut is not None:
+                    try:
+                        # Exactly one done-callback (a task's wake-up): the future is
+                        # pending, as a future drops its callbacks when it completes.
+                        ((callback, ctx),) = fut._callbacks
+                    except (TypeError, ValueError, AttributeError):
+                        fut = None  # done, several waiters, none, not a future: below
+                    else:
+                        virtual.now_ns = self.now_ns = when
+                        _heappop(heap)
+                        del at[when]
+                        if fut is not obj:
+                            obj._scheduled = False
+        if fut is None:
+            # Every other case: timers, buckets, dead entries, stepping sources, entries
+            # due now. Drop what can no longer fire at the head first.
+            while heap:
+                when = heap[0]
+                obj = at[when]
+                if type(obj) is _Future:
+                    if not obj.done():
+                        break
+                elif isinstance(obj, _TimerHandle):
+                    if not obj._cancelled:
+                        break
+                    obj._scheduled = False
+                    self._cancelled_timers -= 1
+                elif not self._dead(obj):
                     break
-            elif isinstance(obj, _TimerHandle):
-                if not obj._cancelled:
-                    break
-                obj._scheduled = False
-                self._cancelled_timers -= 1
-            elif not self._dead(obj):
-                break
+                _heappop(heap)
+                del at[when]
+            else:
+                return False
+            now = self.now_ns
+            if when > now:
+                if virtual is not None:
+                    # VirtualTimeSource.advance(when, None), inlined: it moves exactly to
+                    # any later target (the hot path's one call saved)
+                    virtual.now_ns = self.now_ns = now = when
+                else:
+                    now = self.now_ns = self.source.advance(when, None)
+                    if ready or not heap:
+                        return True
+                    when = heap[0]  # a step hook may have scheduled (or jumped) meanwhile
+                    if when > now:
+                        return True  # a stepping source returns in chunks on long advances
+                    obj = at[when]
             _heappop(heap)
             del at[when]
-        else:
-            return False
-        now = self.now_ns
-        if when > now:
-            virtual = self._virtual
-            if virtual is not None:
-                # VirtualTimeSource.advance(when, None), inlined: it moves exactly to any
-                # later target (the hot path's one call saved)
-                virtual.now_ns = self.now_ns = now = when
-            else:
-                now = self.now_ns = self.source.advance(when, None)
-                if ready or not heap:
-                    return True
-                when = heap[0]  # a step hook may have scheduled (or jumped) meanwhile
-                if when > now:
-                    return True  # a stepping source returns in chunks on long advances
-                obj = at[when]
-        _heappop(heap)
-        del at[when]
-        # Deadlines are distinct in the heap: ``obj`` is alone unless it was overdue.
-        if type(obj) is not _Bucket and (not heap or heap[0] > now):
-            if type(obj) is _Future:
-                fut, result = obj, None
-            elif isinstance(obj, _TimerHandle):
-                if obj._callback is _SET_RESULT_UNLESS_CANCELLED:
-                    obj._scheduled = False
-                    fut, result = obj._args  # asyncio.sleep's future
-                else:
-                    fut = None
-            elif obj is _STOP:
-                fut = None
-            else:
-                fut, result = obj, None  # a future of another type (a foreign loop's)
-            if fut is not None and not fut.done():
-                try:
-                    # Exactly one done-callback (a task's wake-up): run it here. A pending
-                    # future keeps its callbacks in a list (a C future: None when empty).
-                    ((callback, ctx),) = fut._callbacks
-                except (TypeError, ValueError):
-                    self._wake_in_place(fut, result)  # several waiters, or none
-                else:
-                    fut.remove_done_callback(callback)
-                    fut.set_result(result)
+            # Deadlines are distinct in the heap: ``obj`` is alone unless it was overdue.
+            if type(obj) is not _Bucket and (not heap or heap[0] > now):
+                if type(obj) is _Future:
+                    fut, result = obj, None
+                elif isinstance(obj, _TimerHandle):
+                    if obj._callback is _SET_RESULT_UNLESS_CANCELLED:
+                        fut, result = obj._args  # asyncio.sleep's future
+                elif obj is not _STOP:
+                    fut, result = obj, None  # a future of another type (a foreign loop's)
+                if fut is not None:
                     try:
-                        ctx.run(callback, fut)
-                    except (SystemExit, KeyboardInterrupt):
-                        raise
-                    except BaseException as exc:
-                        self._report_wakeup_error(exc)
+                        ((callback, ctx),) = fut._callbacks  # one waiter, pending
+                    except (TypeError, ValueError):
+                        fut = None  # several waiters, none, or done: fire() below
+                    else:
+                        if fut is not obj:
+                            obj._scheduled = False
+            if fut is None:
+                self.fire(self._pop_due(now, list(obj) if type(obj) is _Bucket else [obj]), ready)
                 return True
-        self.fire(self._pop_due(now, list(obj) if type(obj) is _Bucket else [obj]), ready)
+        # The one wake-up done here, in place: resolve the future and run its one waiter's
+        # step now, as the ready queue would have next (no Handle, no call_soon hop).
+        fut.remove_done_callback(callback)
+        fut.set_result(result)
+        try:
+            ctx.run(callback, fut)
+        except (SystemExit, KeyboardInterrupt):
+            raise
+        except BaseException as exc:
+            self._report_wakeup_error(exc)
         return True
 
     # ------------------------------------------------ what time sources use

@@ -89,6 +89,7 @@ class ReferenceLoop(asyncio.SelectorEventLoop):
 #   ("wait", e, k)        async with asyncio.timeout(k * TICK): await events[e].wait()
 #   ("call_at", k, n)     loop.call_at(now + k * TICK, cb) - cb does call_soon n times
 #   ("call_soon", n)      loop.call_soon(cb) - cb does call_soon n times
+#   ("cancel", j)         tasks[j].cancel() (often while j was woken at the same instant)
 EVENTS = 3
 ticks = st.integers(min_value=0, max_value=4)
 op = st.one_of(
@@ -100,6 +101,7 @@ op = st.one_of(
     st.tuples(st.just("wait"), st.integers(0, EVENTS - 1), st.integers(1, 4)),
     st.tuples(st.just("call_at"), ticks, st.integers(0, 2)),
     st.tuples(st.just("call_soon"), st.integers(0, 2)),
+    st.tuples(st.just("cancel"), st.integers(0, 4)),
 )
 programs = st.lists(st.lists(op, max_size=8), min_size=1, max_size=5)
 
@@ -120,7 +122,16 @@ def make_main(
             for j in range(soon):
                 loop.call_soon(record, f"{label}.soon{j}")
 
+        tasks: list[asyncio.Task[None]] = []
+
         async def task(index: int, ops: list[tuple[Any, ...]]) -> None:
+            try:
+                await run_ops(index, ops)
+            except asyncio.CancelledError:
+                record(f"t{index} cancelled")
+                raise
+
+        async def run_ops(index: int, ops: list[tuple[Any, ...]]) -> None:
             for step, operation in enumerate(ops):
                 name = f"t{index}.{step}"
                 kind = operation[0]
@@ -140,13 +151,17 @@ def make_main(
                             await events_[operation[1]].wait()
                     except TimeoutError:
                         record(f"{name} timeout")
+                elif kind == "cancel":
+                    if operation[1] < len(tasks) and operation[1] != index:
+                        tasks[operation[1]].cancel()
                 elif kind == "call_at":
                     loop.call_at(loop.time() + operation[1] * TICK, callback, name, operation[2])
                 else:
                     loop.call_soon(callback, name, operation[1])
                 record(name)
 
-        await asyncio.gather(*(task(i, ops) for i, ops in enumerate(program)))
+        tasks.extend(asyncio.create_task(task(i, ops)) for i, ops in enumerate(program))
+        await asyncio.gather(*tasks, return_exceptions=True)
         record("end")
 
     return main
