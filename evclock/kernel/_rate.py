@@ -225,6 +225,10 @@ class Rate:
         self._start: int | None = None
         self._index = -1
         self._closed = False
+        # On sim time the kernel's clock is read as a plain attribute (the hot path of every
+        # rate loop: two reads per tick); other clocks through now_ns().
+        self._core = getattr(clock, "core", None)
+        self._clock_type = clock.clock_type
 
     @property
     def period(self) -> Duration:
@@ -251,23 +255,36 @@ class Rate:
         if self._closed:
             raise StopAsyncIteration
         clock = self._clock
-        now = clock.now_ns()
-        if self._start is None:
+        core = self._core
+        now = clock.now_ns() if core is None else core.now_ns
+        start = self._start
+        if start is None:
             self._start, self._index = now, 0
             return self._tick(0, now, now, 0)
         index = self._index + 1
-        deadline = self._start + index * self._num // self._den
+        deadline = start + index * self._num // self._den
         if now < deadline:
             try:
                 await clock.sleep_until_ns(deadline)
             except ClockJumpedError:
                 return self._reanchor()
-            now = clock.now_ns()
+            now = clock.now_ns() if core is None else core.now_ns
             if now < deadline:
                 # Woken as due, then the clock jumped back before this task ran.
                 return self._reanchor()
-            return self._tick(index, deadline, now, 0)
-        passed = (now - self._start) * self._den // self._num  # last deadline index <= now
+            # The common case, on time or late by less than a period: _tick and
+            # LoopStats.record inlined (every rate loop's hot path).
+            self._index = index
+            stats = self.stats
+            stats.ticks += 1
+            lateness = now - deadline
+            if lateness:
+                stats.total_lateness_ns += lateness
+                if lateness > stats.max_lateness_ns:
+                    stats.max_lateness_ns = lateness
+            stats.recent_lateness_ns.append(lateness)
+            return Tick(index, deadline, now, 0, self._clock_type)
+        passed = (now - start) * self._den // self._num  # last deadline index <= now
         if self._policy == "catch_up":
             return self._tick(index, deadline, now, 0)
         if self._policy == "skip":
@@ -285,7 +302,7 @@ class Rate:
     def _tick(self, index: int, expected: int, actual: int, missed: int) -> Tick:
         self._index = index
         self.stats.record(actual - expected, missed)
-        return Tick(index, expected, actual, missed, self._clock.clock_type)
+        return Tick(index, expected, actual, missed, self._clock_type)
 
     async def sleep(self) -> Tick:
         """Wait for the next tick (the ROS ``Rate.sleep`` style of use)."""
@@ -360,6 +377,11 @@ class Timer:
     async def _run(self, start: int) -> None:
         clock = self._clock
         index = 1
+        if clock.now_ns() < start:
+            # The clock jumped back between the timer's creation and this task's start (a
+            # reset at the same instant): anchor on the time after the jump, as a jump
+            # while it waits would.
+            start = clock.now_ns()
         while True:
             self._next_ns = deadline = start + index * self._period_ns
             try:

@@ -178,3 +178,20 @@ def test_a_tick_due_at_the_instant_of_a_backward_jump_re_anchors() -> None:
         (1, 15 * 10**8, 15 * 10**8),
     ]
     assert all(actual >= expected for _, expected, actual in ticks)
+
+
+def test_a_timer_created_at_the_instant_of_a_backward_jump_follows_the_new_time() -> None:
+    """Created, then the clock jumps back before the timer's task first runs: its period
+    counts from the time after the jump, not from before it (it would wait 4 s more)."""
+
+    async def main() -> list[float]:
+        clock = evclock.clock()
+        await clock.sleep(5)
+        calls: list[float] = []
+        timer = clock.timer(0.5, lambda: calls.append(clock.now().seconds))
+        source().set_time(1_000_000_000)
+        await clock.sleep(1.2)
+        timer.cancel()
+        return calls
+
+    assert evclock.run(main()) == [1.5, 2.0]
