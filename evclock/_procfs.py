@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import enum
 import os
+import socket
+import stat
+import struct
 import sys
 import threading
 import time
@@ -437,19 +440,22 @@ def forget_child(pid: int) -> None:
 # ------------------------------------------ which descriptors a thread waits on (Linux)
 
 #: System calls that wait on descriptors: "poll" (a pollfd array and its length in the first
-#: two arguments) or "fd" (the descriptor is the first argument).
+#: two arguments), "select" (nfds, then the read, write and except fd_set pointers) or "fd"
+#: (the descriptor is the first argument).
 _FD_WAITS: dict[int, str] = (
-    {7: "poll", 271: "poll", 0: "fd", 19: "fd", 45: "fd", 47: "fd"}
+    {7: "poll", 271: "poll", 23: "select", 270: "select", 0: "fd", 19: "fd", 45: "fd", 47: "fd"}
     if _SYSCALLS is _X86_64
-    else {73: "poll", 63: "fd", 65: "fd", 207: "fd", 212: "fd"}
+    else {73: "poll", 72: "select", 63: "fd", 65: "fd", 207: "fd", 212: "fd"}
 )
 _MAX_POLL_FDS = 64
+_MAX_SELECT_FDS = 1024  # FD_SETSIZE
 
 
 def waited_fds(thread: threading.Thread) -> list[int]:
     """The descriptors ``thread`` is blocked on, if it waits in ``poll``/``ppoll`` (how a
-    socket with a timeout waits) or in a ``read``/``recv`` on one descriptor: from its
-    system call's arguments (and the pollfd array they point to). Empty when unknown."""
+    socket with a timeout waits), ``select``/``pselect6`` or in a ``read``/``recv`` on one
+    descriptor: from its system call's arguments (and the pollfd array or fd_sets they point
+    to). Empty when unknown."""
     native_id = thread.native_id
     kernel = kernel_view
     if kernel is None or native_id is None:
@@ -459,10 +465,12 @@ def waited_fds(thread: threading.Thread) -> list[int]:
     if len(fields) < 7 or fields[0] in ("running", "-1"):
         return []
     kind = _FD_WAITS.get(int(fields[0]))
-    args = [int(value, 16) for value in fields[1:3]]
+    args = [int(value, 16) for value in fields[1:5]]
     if kind == "fd":
         return [args[0]] if args[0] < 2**31 else []
     mem_fd = _own_mem()
+    if kind == "select":
+        return _selected_fds(args, mem_fd, lambda: kernel.read(native_id) == text)
     if kind != "poll" or mem_fd is None or not 0 < args[1] <= _MAX_POLL_FDS:
         return []
     try:
@@ -475,6 +483,114 @@ def waited_fds(thread: threading.Thread) -> list[int]:
         int.from_bytes(raw[i : i + 4], sys.byteorder, signed=True) for i in range(0, len(raw), 8)
     ]
     return [fd for fd in fds if fd >= 0]
+
+
+def _selected_fds(args: list[int], mem_fd: int | None, unchanged: Callable[[], bool]) -> list[int]:
+    """The descriptors of a ``select``/``pselect6`` call: the bits set in its three fd_sets."""
+    nfds = args[0]
+    if mem_fd is None or not 0 < nfds <= _MAX_SELECT_FDS:
+        return []
+    size = (nfds + 63) // 64 * 8  # an fd_set is an array of longs
+    fds: set[int] = set()
+    for pointer in args[1:4]:
+        if not pointer:
+            continue
+        try:
+            raw = os.pread(mem_fd, size, pointer)
+        except (OSError, OverflowError):
+            return []
+        if len(raw) != size:
+            return []
+        bits = int.from_bytes(raw, "little")  # Linux: bit i of the set is fd i
+        fds.update(fd for fd in range(nfds) if bits >> fd & 1)
+    if not unchanged():
+        return []
+    return sorted(fds)
+
+
+def far_end(fd: int) -> tuple[str, object] | None:
+    """Who is at the other end of ``fd``, as :func:`near_end` names it from that end: a
+    pipe's inode (both ends share it), a connected Unix socket's peer inode (the kernel's
+    ``sock_diag``), a connected IP socket's peer address. None when it is none of these or
+    cannot be told."""
+    try:
+        st = os.fstat(fd)
+    except OSError:
+        return None
+    if stat.S_ISFIFO(st.st_mode):
+        return ("pipe", st.st_ino)
+    if not stat.S_ISSOCK(st.st_mode):
+        return None
+    try:
+        with socket.socket(fileno=os.dup(fd)) as sock:
+            if sock.family == socket.AF_UNIX:
+                peer = _unix_peer_inode(st.st_ino)
+                return None if peer is None else ("unix", peer)
+            if sock.family in (socket.AF_INET, socket.AF_INET6):
+                return ("ip", sock.getpeername())
+    except OSError:
+        return None
+    return None
+
+
+def near_end(fd: int) -> tuple[str, object] | None:
+    """``fd``'s own end, named as :func:`far_end` names it from the other end."""
+    try:
+        st = os.fstat(fd)
+    except OSError:
+        return None
+    if stat.S_ISFIFO(st.st_mode):
+        return ("pipe", st.st_ino)
+    if not stat.S_ISSOCK(st.st_mode):
+        return None
+    try:
+        with socket.socket(fileno=os.dup(fd)) as sock:
+            if sock.family == socket.AF_UNIX:
+                return ("unix", st.st_ino)
+            if sock.family in (socket.AF_INET, socket.AF_INET6):
+                return ("ip", sock.getsockname())
+    except OSError:
+        return None
+    return None
+
+
+_NETLINK_SOCK_DIAG = 4
+_SOCK_DIAG_BY_FAMILY = 20
+_UDIAG_SHOW_PEER = 4
+_UNIX_DIAG_PEER = 2
+
+
+def _unix_peer_inode(inode: int) -> int | None:
+    """The inode of the Unix socket connected to the one of ``inode`` (Linux ``sock_diag``:
+    what ``ss -x`` shows as the peer), or None."""
+    if not hasattr(socket, "AF_NETLINK"):
+        return None
+    try:
+        with socket.socket(socket.AF_NETLINK, socket.SOCK_RAW, _NETLINK_SOCK_DIAG) as nl:
+            # struct unix_diag_req: family, protocol, pad, states, ino, show, cookie[2]
+            request = struct.pack(
+                "=BBHIIIII", socket.AF_UNIX, 0, 0, 0xFFFFFFFF, inode, _UDIAG_SHOW_PEER,
+                0xFFFFFFFF, 0xFFFFFFFF,
+            )  # fmt: skip
+            header = struct.pack("=IHHII", 16 + len(request), _SOCK_DIAG_BY_FAMILY, 1, 1, 0)
+            nl.sendto(header + request, (0, 0))
+            data = nl.recv(8192)
+    except OSError:
+        return None
+    if len(data) < 32:
+        return None
+    length, kind = struct.unpack_from("=IH", data)
+    if kind != _SOCK_DIAG_BY_FAMILY:
+        return None  # an error reply: no such socket
+    offset = 32  # nlmsghdr (16) + struct unix_diag_msg (16), then attributes
+    while offset + 4 <= min(length, len(data)):
+        size, attribute = struct.unpack_from("=HH", data, offset)
+        if size < 4:
+            return None
+        if attribute == _UNIX_DIAG_PEER and offset + 8 <= len(data):
+            return int(struct.unpack_from("=I", data, offset + 4)[0])
+        offset += (size + 3) & ~3
+    return None
 
 
 def forget_threads(alive: set[int]) -> None:

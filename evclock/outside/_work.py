@@ -57,7 +57,14 @@ from evclock._cpython import (
     subprocess_finished,
     thread_registry,
 )
-from evclock._procfs import ThreadState, child_wait_deadline, forget_child, waited_fds
+from evclock._procfs import (
+    ThreadState,
+    child_wait_deadline,
+    far_end,
+    forget_child,
+    near_end,
+    waited_fds,
+)
 from evclock.outside._threads import (
     HOLDING_STATES,
     WAKING_STATES,
@@ -230,7 +237,9 @@ class OutsideWork:
             for thread, state in threads:
                 if state not in HOLDING_STATES or thread.ident in jobs:
                     continue
-                if state is ThreadState.TIMED and not timed_waits_hold:
+                if state is ThreadState.TIMED and (
+                    not timed_waits_hold or self._waits_for_the_loop(thread)
+                ):
                     continue
                 deadline = wait_deadline(thread) if state is ThreadState.TIMED else None
                 if deadline is None:
@@ -323,6 +332,18 @@ class OutsideWork:
             self._in_flight = pending
             self._in_flight_since = now
         return bool(pending) and now - self._in_flight_since < IN_FLIGHT_PATIENCE
+
+    def _waits_for_the_loop(self, thread: threading.Thread) -> bool:
+        """Whether ``thread``'s timed wait is on a descriptor whose other end the loop
+        serves (a pipe, a Unix or IP socket registered in its selector): it waits for the
+        loop - an in-process peer on a socket with a timeout - which is no timed work of
+        its own: only the loop can end it early, so it does not hold sim time. Exact: the
+        ends are matched by the kernel's identities (pipe inode, peer inode, address)."""
+        fds = waited_fds(thread)
+        if not fds:
+            return False
+        loop_ends = [end for key in list(self._registered()) if (end := near_end(key.fd))]
+        return bool(loop_ends) and any(far_end(fd) in loop_ends for fd in fds)
 
     def _alarm_pending(self) -> bool:
         """A wall-clock SIGALRM is armed (``signal.setitimer``/``alarm``) and the loop

@@ -269,6 +269,39 @@ def test_a_thread_that_waits_with_a_timeout_holds_sim_time(wait: str) -> None:
     assert evclock.run(main()) == (wait, 0.0)
 
 
+@pytest.mark.parametrize("channel", ["socketpair", "tcp"])
+def test_a_timed_wait_on_what_the_loop_serves_waits_for_the_loop(channel: str) -> None:
+    """A peer thread waiting with a timeout on a socket whose other end the loop reads (an
+    in-process server, a socket with a 20 s safety timeout) waits for the loop, not for its
+    timeout: it does not hold sim time, so a 1 s sim sleep ends without waiting for the
+    peer's 20 s (held, the peer would time out and get nothing), and the peer then gets the
+    loop's answer."""
+
+    async def main() -> tuple[float, bytes]:
+        loop = asyncio.get_running_loop()
+        if channel == "socketpair":
+            ours, theirs = socket.socketpair()
+        else:
+            server = socket.create_server(("127.0.0.1", 0))
+            theirs = socket.create_connection(server.getsockname())
+            ours, _ = server.accept()
+            server.close()
+        theirs.settimeout(20)
+        got: list[bytes] = []
+        thread = threading.Thread(target=lambda: got.append(theirs.recv(1)))
+        loop.add_reader(ours, lambda: None)  # the loop serves its end
+        thread.start()
+        await asyncio.sleep(1)  # the peer's timed wait is no reason to hold this
+        loop.remove_reader(ours)
+        ours.sendall(b"!")
+        await asyncio.to_thread(thread.join, 30)
+        ours.close()
+        theirs.close()
+        return sim_time(), got[0]
+
+    assert evclock.run(main()) == (1.0, b"!")
+
+
 def test_a_long_timed_wait_lets_earlier_sim_timers_fire_first() -> None:
     """As on stock asyncio, where loop timers and thread timeouts race on one clock: a
     thread's 3 s safety timeout does not keep a 0.1 s sleep from ending first."""
@@ -840,7 +873,8 @@ def test_driver_step_resume_and_rtf_from_another_thread_wake_it() -> None:
         async with evclock.SimDriver(rtf=None, paused=True) as sim:
             op = _in_thread(sim.step)
             await asyncio.wait_for(sim.clock.sleep(3), 10)  # one step: a jump to 3 s
-            seen += [sim.now_ns, await _outcome(op), sim.paused]
+            # step() returns an awaitable of the steps (awaited on the driver's loop only)
+            seen += [sim.now_ns, type(await _outcome(op)).__name__, sim.paused]
             op = _in_thread(sim.resume)
             await asyncio.wait_for(sim.clock.sleep(4), 10)
             seen += [sim.now_ns, sim.paused]
@@ -859,7 +893,7 @@ def test_driver_step_resume_and_rtf_from_another_thread_wake_it() -> None:
             await _outcome(op)
         return seen
 
-    assert asyncio.run(main()) == [3 * 10**9, None, True, 7 * 10**9, False, 3607 * 10**9, None]
+    assert asyncio.run(main()) == [3 * 10**9, "Steps", True, 7 * 10**9, False, 3607 * 10**9, None]
 
 
 def test_driver_pause_and_step_until_from_another_thread_stop_exactly() -> None:
