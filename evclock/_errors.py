@@ -142,7 +142,10 @@ class ClockLostError(RemoteClockError):
 
 
 class JoinRefusedError(RemoteClockError):
-    """The clock server refused to let this process join (name taken, version, token)."""
+    """Joining a clock server failed its checks, on either side: the server refused this
+    process (name taken, protocol version, token, another user), or this process refused the
+    server (a server running as another user, or one that could not prove it knows the
+    token)."""
 
 
 class ParticipantLostError(RemoteClockError):

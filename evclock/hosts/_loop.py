@@ -144,7 +144,7 @@ class _SimTimer(events.TimerHandle):
         if self._cancelled:
             return
         if self._scheduled:  # still in the kernel's heap: counted there, to purge it
-            self._loop._core.timer_cancelled()
+            self._loop._core.cancelled_timers += 1  # SimCore.timer_cancelled, inlined
         self._cancelled = True
         if self._loop._debug:
             self._repr = repr(self)  # type: ignore[assignment]  # as Handle.cancel (to log the callback afterwards)
@@ -377,13 +377,34 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             raise InvalidArgumentError(f"call_at() needs a finite time, got {when!r}")
         if self._closed:
             self._check_closed()
-        timer = _SimTimer(when, callback, args, self, context)
         if self._debug:
+            timer = _SimTimer(when, callback, args, self, context)
             self._check_debug(timer, callback, "call_at")
-        if when <= _MAX_TIME_S:
-            self._core.call_at(round(when * 1e9), timer)
-        # else "never" (anyio's sleep_forever, an unbounded CancelScope, a huge delay):
-        # beyond sim time's range, as on stock asyncio a timer that never fires nor moves time.
+            if when <= _MAX_TIME_S:
+                self._core.call_at(round(when * 1e9), timer)
+            return timer
+        # Hot path (every asyncio.timeout and wait_for): _SimTimer.__init__ and
+        # SimCore.call_at inlined, as in call_later.
+        timer = _new_timer(_SimTimer)
+        timer._context = context if context is not None else _copy_context()
+        timer._loop = self
+        timer._callback = callback
+        timer._args = args
+        timer._cancelled = False
+        timer._repr = None
+        timer._source_traceback = None
+        timer._when = when
+        if when <= _MAX_TIME_S and (when_ns := round(when * 1e9)) <= MAX_TIME_NS:
+            timer._scheduled = True
+            core = self._core
+            if core.at.setdefault(when_ns, timer) is timer:  # SimCore.schedule, inlined
+                _heappush(core.heap, when_ns)
+            else:
+                core.schedule(when_ns, timer)
+        else:
+            # "never" (anyio's sleep_forever, an unbounded CancelScope, a huge delay): beyond
+            # sim time's range, as on stock asyncio a timer that never fires nor moves time.
+            timer._scheduled = False
         return timer
 
     def call_at_ns(
@@ -797,6 +818,14 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """Release one :meth:`add_hold` (thread-safe). It takes an ignored argument so that
         it can be a future's done-callback."""
         self._outside.release_hold()
+
+    def restart_stall_bound(self) -> None:
+        """Start the ``stall_timeout`` bound again: the hold in force is bounded by its
+        owner, not by the loop. A holder with a timeout of its own (the clock server
+        waiting for participants under its join, step and ``pause`` policies) calls this
+        while that is so; its own timeout then ends the wait, with its own error, however
+        long it is. Call it on the loop's thread."""
+        self._held_since = None
 
     @contextlib.contextmanager
     def hold_time(self) -> Iterator[None]:

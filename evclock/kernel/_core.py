@@ -279,7 +279,9 @@ class SimCore:
         self.at: dict[int, Any] = {}
         self._settled: list[tuple[int, int, asyncio.Future[None]]] = []
         self._seq = itertools.count().__next__
-        self._cancelled_timers = 0
+        #: Cancelled timers still in the heap (purged once they are many): a timer's cancel()
+        #: counts itself here while it is scheduled (``SimEventLoop``'s timers, inline).
+        self.cancelled_timers = 0
         #: Creates the future of a sim-time wait, raising if waits are impossible now or here
         #: (closed loop, stopped driver, wrong thread): set by the host.
         self.future_factory: Callable[[], asyncio.Future[None]]
@@ -323,7 +325,7 @@ class SimCore:
 
     def timer_cancelled(self) -> None:
         """A scheduled timer was cancelled (it stays in the heap until purged)."""
-        self._cancelled_timers += 1
+        self.cancelled_timers += 1
 
     def stop_at(self, when_ns: int) -> None:
         """Make time stop exactly at ``when_ns`` on its way (step_until, run_until)."""
@@ -357,7 +359,7 @@ class SimCore:
         at = self.at
         while heap and self._dead(at[heap[0]]):
             del at[heapq.heappop(heap)]
-        if self._cancelled_timers > _PURGE_AT and self._cancelled_timers * 2 > len(heap):
+        if self.cancelled_timers > _PURGE_AT and self.cancelled_timers * 2 > len(heap):
             self._purge()
         settled = self._settled
         while settled and settled[0][2].done():
@@ -386,7 +388,7 @@ class SimCore:
             for one in entry:
                 if isinstance(one, _TimerHandle):
                     one._scheduled = False
-                    self._cancelled_timers -= 1
+                    self.cancelled_timers -= 1
             return True
         if entry is _STOP:
             return False
@@ -394,7 +396,7 @@ class SimCore:
             if not entry._cancelled:
                 return False
             entry._scheduled = False
-            self._cancelled_timers -= 1
+            self.cancelled_timers -= 1
             return True
         return bool(entry.done())
 
@@ -428,7 +430,7 @@ class SimCore:
                 continue
             keep.append((when, entry))
         self._rebuild(keep)
-        self._cancelled_timers = 0
+        self.cancelled_timers = 0
 
     # ------------------------------------------------------------- firing
 
@@ -475,7 +477,7 @@ class SimCore:
             else:
                 obj._scheduled = False
                 if obj._cancelled:
-                    self._cancelled_timers -= 1
+                    self.cancelled_timers -= 1
                     continue
                 if obj._callback is not _SET_RESULT_UNLESS_CANCELLED or obj._args[0].done():
                     if in_place:
@@ -655,7 +657,7 @@ class SimCore:
                     if not obj._cancelled:
                         break
                     obj._scheduled = False
-                    self._cancelled_timers -= 1
+                    self.cancelled_timers -= 1
                 elif not self._dead(obj):
                     break
                 _heappop(heap)
@@ -775,7 +777,7 @@ class SimCore:
                 woken.append(obj)
         kept.sort(key=_deadline)  # stable: equal deadlines keep their order
         self._rebuild(kept)
-        self._cancelled_timers = 0
+        self.cancelled_timers = 0
         settled, self._settled = self._settled, []
         woken.extend(fut for _, _, fut in settled if not fut.done())
         for fut in woken:

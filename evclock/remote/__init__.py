@@ -4,8 +4,9 @@
 (:func:`serve`, :class:`ClockServer`); a process joins with ``evclock.run(main(),
 clock="unix://...")`` and follows it or runs in lockstep with it.
 
-* :mod:`._address` parses ``unix:///path`` / ``tcp://host:port`` endpoints and opens sockets;
-* :mod:`._protocol` is the length-prefixed binary framing and its version handshake;
+* :mod:`._address` parses ``unix:///path`` / ``tcp://host:port`` endpoints, opens sockets,
+  makes the private default directory and reads a Unix peer's credentials;
+* :mod:`._protocol` is the length-prefixed binary framing and its authenticated handshake;
 * :mod:`._server` serves a :class:`~evclock.SimEventLoop`'s time (follow and lockstep);
 * :mod:`._participant` is the time source of a process that joins (``clock="unix://..."``);
 * :mod:`._physics` lets scenario controllers call PyBullet in the simulation process.

@@ -2,22 +2,30 @@
 
 Options ride in the query string, so one string (an argument or ``EVCLOCK_CLOCK``) says
 everything a participant needs: ``unix:///tmp/sim.sock?mode=follow&name=observer``.
+
+The default address lives in a private directory of the user (:func:`private_dir`: mode 0700,
+owned by the user, never a predictable name in a shared directory), and both ends of a Unix
+socket check who the other is (:func:`peer_uid`, ``SO_PEERCRED``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import ipaddress
 import math
 import os
 import socket
+import stat
+import struct
+import tempfile
 import urllib.parse
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError
 
 MODES = ("lockstep", "follow")
 #: Query keys a participant's address may carry.
-_PARTICIPANT_KEYS = ("mode", "name", "token", "timeout")
+_PARTICIPANT_KEYS = ("mode", "name", "token", "timeout", "server_uid")
 #: Wall seconds a participant waits for the server (to appear, to grant, to reply) by default.
 DEFAULT_PEER_TIMEOUT = 60.0
 #: The shortest ``timeout`` accepted: a few keepalive periods of the server.
@@ -36,6 +44,8 @@ class Address:
     name: str | None = None
     token: str | None = None
     timeout: float = DEFAULT_PEER_TIMEOUT
+    #: The user id the server of a Unix socket must run as (default: this process's user).
+    server_uid: int | None = None
 
     def __str__(self) -> str:
         if self.scheme == "unix":
@@ -101,7 +111,24 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
             f"timeout must be at least {MIN_PEER_TIMEOUT:g} s (the server's keepalives come "
             f"every 0.2 s), got {options['timeout']!r}"
         )
-    common = {"mode": mode, "name": name, "token": options.get("token"), "timeout": timeout}
+    server_uid: int | None = None
+    if "server_uid" in options:
+        raw_uid = options["server_uid"]
+        if not raw_uid.isdigit():
+            raise InvalidArgumentError(
+                f"server_uid must be a numeric user id (e.g. 1000), got {raw_uid!r}"
+            )
+        server_uid = int(raw_uid)
+    token = options.get("token")
+    if token is not None and not token:
+        raise InvalidArgumentError(f"token must not be empty in clock address {url!r}")
+    common = {
+        "mode": mode,
+        "name": name,
+        "token": token,
+        "timeout": timeout,
+        "server_uid": server_uid,
+    }
     if parts.scheme == "unix":
         if parts.netloc or not parts.path:
             raise InvalidArgumentError(
@@ -189,3 +216,51 @@ def connect(address: Address, timeout: float) -> socket.socket:
     if address.scheme == "tcp":
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     return sock
+
+
+def _check_private(path: str) -> None:
+    info = os.lstat(path)
+    kind = "a directory" if stat.S_ISDIR(info.st_mode) else "not a directory"
+    if not stat.S_ISDIR(info.st_mode) or info.st_uid != os.getuid() or info.st_mode & 0o077:
+        raise InvalidArgumentError(
+            f"{path} is not a private directory of this user (owner uid {info.st_uid}, mode "
+            f"{stat.S_IMODE(info.st_mode):o}, {kind}): "
+            "another user may have created it to intercept clock connections; remove it, or "
+            "set XDG_RUNTIME_DIR, or serve on an explicit address in a directory of yours"
+        )
+
+
+def private_dir() -> str:
+    """The user's private directory for clock sockets, created (mode 0700) if needed.
+
+    ``$XDG_RUNTIME_DIR/evclock`` where ``XDG_RUNTIME_DIR`` is set, otherwise
+    ``evclock-UID`` in the temporary directory. It is created with ``mkdir(0700)`` (which
+    never follows nor replaces what exists) and then checked: a directory (not a link),
+    owned by this user, with no access for anyone else.
+
+    :returns: the directory's path.
+    :raises InvalidArgumentError: the path exists but is not such a directory (another
+        user created it first, or its mode was widened).
+    """
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    if runtime and os.path.isabs(runtime) and os.path.isdir(runtime):
+        path = os.path.join(runtime, "evclock")
+    else:
+        path = os.path.join(tempfile.gettempdir(), f"evclock-{os.getuid()}")
+    with contextlib.suppress(FileExistsError):
+        os.mkdir(path, 0o700)
+    _check_private(path)
+    return path
+
+
+_PEERCRED = struct.Struct("3i")  # struct ucred: pid, uid, gid
+
+
+def peer_credentials(sock: socket.socket) -> tuple[int, int] | None:
+    """``(pid, uid)`` of the process at the other end of a Unix socket (``SO_PEERCRED``),
+    or None where the system does not tell (TCP, a platform without it)."""
+    option = getattr(socket, "SO_PEERCRED", None)
+    if sock.family != socket.AF_UNIX or option is None:
+        return None
+    pid, uid, _gid = _PEERCRED.unpack(sock.getsockopt(socket.SOL_SOCKET, option, _PEERCRED.size))
+    return pid, uid

@@ -14,8 +14,10 @@ pending sleeps raise ``ClockJumpedError``, asyncio timers keep their remaining d
 from __future__ import annotations
 
 import contextlib
+import hmac
 import itertools
 import json
+import logging
 import os
 import select
 import socket
@@ -35,13 +37,19 @@ from evclock._errors import (
 )
 from evclock.kernel._source import Gate
 from evclock.remote import _protocol as proto
-from evclock.remote._address import Address, connect, parse_address
+from evclock.remote._address import Address, connect, parse_address, peer_credentials
 from evclock.remote._server import Message
 from evclock.sources import TimeSource
 from evclock.time._time import SIM, new_time
 
-#: Wall seconds between connection attempts while the server is not up yet.
-_RETRY = 0.05
+log = logging.getLogger("evclock.remote")
+
+#: Wall seconds before the first new connection attempt while the server is not up yet, its
+#: listen backlog is full or it is busy with other handshakes; doubled up to ``_RETRY_MAX``.
+_RETRY = 0.01
+_RETRY_MAX = 0.5
+#: ERROR frames kept for :attr:`RemoteClockSource.errors` (the newest).
+_KEEP_ERRORS = 100
 
 #: Frames about sim time that a pending jump holds back (replies and the server's goodbye
 #: are handled at once: a call waits for its reply).
@@ -63,9 +71,19 @@ class RemoteClockSource(TimeSource):
     ``t`` nor past its next deadline. *follow*: time follows the server every step; the
     simulation never waits for this process.
 
-    Joining waits up to ``timeout`` wall seconds (default 60) for the server to appear;
+    Joining waits up to ``timeout`` wall seconds (default 60) for the server to appear (a
+    connection refused, a full listen backlog or a busy server are retried with backoff);
     afterwards each wait for a grant, a time or a reply is bounded by the same ``timeout``
     and a dead server is reported at once: both raise :class:`~evclock.ClockLostError`.
+
+    Joining authenticates the server: on a Unix socket it must run as this user (or
+    ``?server_uid=``), and with a ``?token=`` it must prove it knows the token before this
+    process proves it does (the token itself is never sent). TCP needs a token.
+
+    :raises InvalidArgumentError: a TCP address without ``?token=``.
+    :raises JoinRefusedError: the server refused this process, or it is not who it should be.
+    :raises ClockLostError: no server answered within ``timeout``.
+    :raises ProtocolError: the server speaks another protocol version.
     """
 
     external = True
@@ -79,7 +97,10 @@ class RemoteClockSource(TimeSource):
         self.mode = addr.mode
         self._lockstep = addr.mode == "lockstep"
         self._timeout = addr.timeout
-        self._reader = proto.Reader()  # the join's reader: it keeps what followed the WELCOME
+        #: Frames the simulation refused (ERROR): ``(kind, reason)``, the newest last.
+        self._errors: list[tuple[int, str]] = []
+        self._max_frame = proto.MAX_FRAME  # the server's limit, from its WELCOME
+        self._reader = proto.Reader(proto.PRE_AUTH_MAX_FRAME)  # kept: what followed the WELCOME
         # Frames read with the WELCOME (a jump, a time, data sent at once after the join),
         # handled in order once the loop runs, before anything read later.
         self._early: list[tuple[int, bytes]] = []
@@ -112,48 +133,113 @@ class RemoteClockSource(TimeSource):
     # ------------------------------------------------------------ joining
 
     def _join(self, addr: Address) -> tuple[socket.socket, int, dict[str, Any]]:
+        if addr.scheme == "tcp" and addr.token is None:
+            raise InvalidArgumentError(
+                f"joining the clock server at {addr} over tcp needs its token: add "
+                "?token=... to the clock address (any user of the machine can reach a tcp "
+                "port, so both sides prove they know the token; it is never sent)"
+            )
         deadline = time.monotonic() + self._timeout
+        delay = _RETRY
         while True:
             try:
                 sock = connect(addr, max(deadline - time.monotonic(), 0.01))
-                break
-            except (FileNotFoundError, ConnectionRefusedError) as exc:
-                if time.monotonic() >= deadline:
+            except (FileNotFoundError, ConnectionRefusedError, BlockingIOError) as exc:
+                # Not up yet, or its listen backlog is full (EAGAIN): try again shortly.
+                if time.monotonic() + delay >= deadline:
                     raise ClockLostError(
                         f"no clock server at {addr} after waiting {self._timeout:g} s of wall "
                         f"time ({exc.strerror}); start the simulation with --serve {addr} "
                         "(or raise ?timeout=)"
                     ) from None
-                time.sleep(_RETRY)
+                why = "listen backlog full" if isinstance(exc, BlockingIOError) else "not up"
+                log.debug("clock server at %s: %s; retrying in %.2f s", addr, why, delay)
+                time.sleep(delay)
+                delay = min(delay * 2, _RETRY_MAX)
+                continue
             except OSError as exc:
                 raise ClockLostError(
                     f"cannot connect to the clock server at {addr}: {exc}"
                 ) from None
-        try:
-            mode = proto.MODE_LOCKSTEP if self._lockstep else proto.MODE_FOLLOW
-            sock.sendall(proto.hello(mode, self.name, addr.token))
+            try:
+                joined = self._handshake(sock, addr, deadline)
+            except BaseException:
+                sock.close()
+                raise
+            if joined is not None:
+                return joined
+            sock.close()  # busy: its handshake slots are full; try again shortly
+            if time.monotonic() + delay >= deadline:
+                raise ClockLostError(
+                    f"the clock server at {addr} stayed busy with other connections for "
+                    f"{self._timeout:g} s of wall time (raise ?timeout=)"
+                )
+            time.sleep(delay)
+            delay = min(delay * 2, _RETRY_MAX)
+
+    def _handshake(
+        self, sock: socket.socket, addr: Address, deadline: float
+    ) -> tuple[socket.socket, int, dict[str, Any]] | None:
+        """Authenticate the server, then this process; None: the server is busy."""
+        cred = peer_credentials(sock)
+        if cred is not None:
+            expected = os.getuid() if addr.server_uid is None else addr.server_uid
+            pid, uid = cred
+            if uid != expected:
+                raise JoinRefusedError(
+                    f"the clock server at {addr} (pid {pid}) runs as user id {uid}, not "
+                    f"{expected}: it is not the simulation you meant (another user's process "
+                    "listening there?); nothing was sent to it. Add ?server_uid="
+                    f"{uid} to the address only if you trust that user"
+                )
+        mode = proto.MODE_LOCKSTEP if self._lockstep else proto.MODE_FOLLOW
+        nonce = proto.new_nonce()
+        self._reader = proto.Reader(proto.PRE_AUTH_MAX_FRAME)
+        self._early = []
+        # A server that refuses at once (busy, another user) may have closed before the
+        # HELLO arrives: its REFUSE is still there to read.
+        with contextlib.suppress(BrokenPipeError, ConnectionResetError):
+            sock.sendall(proto.hello(mode, self.name, nonce))
+        kind, payload = self._read_one(sock, deadline, addr, self._reader, self._early)
+        if kind == proto.CHALLENGE:
+            server_nonce, server_proof = proto.parse_challenge(payload)
+            transcript = proto.transcript(proto.VERSION, mode, self.name, nonce, server_nonce)
+            token = addr.token
+            mine = b""
+            if token is not None:
+                if not hmac.compare_digest(
+                    server_proof, proto.prove(token, proto.SERVER_SIDE, transcript)
+                ):
+                    raise JoinRefusedError(
+                        f"the clock server at {addr} could not prove it knows the token: it "
+                        "is not the simulation you meant (or the tokens differ); the token "
+                        "was not sent to it"
+                    )
+                mine = proto.prove(token, proto.CLIENT_SIDE, transcript)
+            self._reader.limit = proto.MAX_FRAME_LIMIT  # the server proved itself
+            sock.sendall(proto.proof(mine))
             kind, payload = self._read_one(sock, deadline, addr, self._reader, self._early)
-        except BaseException:
-            sock.close()
-            raise
         if kind == proto.REFUSE:
-            sock.close()
-            reason = payload.decode(errors="replace")
+            code, reason = proto.parse_refuse(payload)
+            if code not in (proto.REFUSE_FINAL, proto.REFUSE_BUSY):  # an older server
+                code, reason = proto.REFUSE_FINAL, payload.decode(errors="replace")
+            if code == proto.REFUSE_BUSY:
+                return None
             raise JoinRefusedError(f"the clock server at {addr} refused {self.name!r}: {reason}")
         if kind != proto.WELCOME:
-            sock.close()
-            raise ProtocolError(f"{addr} answered the HELLO with frame kind {kind}, not WELCOME")
-        version, now_ns, raw_info = proto.parse_welcome(payload)
+            raise ProtocolError(
+                f"{addr} answered the handshake with frame kind {kind}, not WELCOME"
+            )
+        version, now_ns, max_frame, raw_info = proto.parse_welcome(payload)
         if version != proto.VERSION:
-            sock.close()
             raise ProtocolError(
                 f"{addr} speaks protocol version {version}, this process {proto.VERSION}; "
                 "run the same evclock version on both sides"
             )
+        self._max_frame = max_frame
         try:
             info = json.loads(raw_info) if raw_info else {}
         except ValueError:
-            sock.close()
             raise ProtocolError(f"{addr} sent unreadable scenario info") from None
         return sock, now_ns, info
 
@@ -226,6 +312,12 @@ class RemoteClockSource(TimeSource):
     def address(self) -> str:
         """The clock server's address."""
         return str(self._address)
+
+    @property
+    def errors(self) -> tuple[str, ...]:
+        """Why the simulation refused frames of this process (its newest 100 ERROR answers:
+        data it could not apply, a frame out of place), oldest first."""
+        return tuple(reason for _, reason in self._errors)
 
     def describe(self) -> str:
         """The source for messages: the server's address, the mode and the name."""
@@ -329,7 +421,7 @@ class RemoteClockSource(TimeSource):
         if not isinstance(data, bytes | bytearray | memoryview):
             raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
         self._check_usable()
-        frame = proto.publish(self._now, topic, bytes(data))
+        frame = proto.publish(self._now, topic, bytes(data), self._max_frame)
         if not self._lockstep:
             self._send(frame)
         elif self._working:
@@ -356,7 +448,9 @@ class RemoteClockSource(TimeSource):
             raise InvalidTypeError(f"data must be bytes, got {type(data).__name__}")
         self._check_usable()
         call_id = self._call_ids()
-        self._send(proto.call(call_id, service, bytes(data)))  # with the round's data, at once
+        self._send(
+            proto.call(call_id, service, bytes(data), self._max_frame)
+        )  # with the round's data, at once
         deadline = time.monotonic() + self._timeout
         sock = self._sock
         while call_id not in self._replies:
@@ -514,6 +608,11 @@ class RemoteClockSource(TimeSource):
             self._replies[call_id] = (ok, data)
         elif kind == proto.JUMP:
             self._on_jump(*proto.parse_jump(payload))
+        elif kind == proto.ERROR:
+            about, reason = proto.parse_error(payload)
+            log.warning("the clock server at %s: %s", self._address, reason)
+            self._errors.append((about, reason))
+            del self._errors[:-_KEEP_ERRORS]
         elif kind == proto.CLOSING:
             self._lose(payload.decode(errors="replace"))
         else:

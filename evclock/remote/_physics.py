@@ -9,12 +9,21 @@ where an in-process controller's command lands. Arguments and results travel as 
 whose floats round-trip exactly, so a split run computes bit for bit what an in-process
 run computes. Only the functions listed here are served: a participant cannot load files,
 step, reset or disconnect the simulation.
+
+Every request is checked in the simulation process before it reaches the engine (PyBullet's
+C code trusts its caller: an out-of-range link index can crash it): only the parameters
+listed in :data:`SIGNATURES`, body ids of existing bodies, joint and link indices within
+that body, finite numbers, vectors of the right length, lists of bounded size, known
+control modes and frames. A request that fails is answered with an error to the participant
+that sent it (:class:`~evclock.RemoteCallError` for a read, an ERROR frame for a command);
+the simulation goes on.
 """
 
 from __future__ import annotations
 
 import functools
 import json
+import math
 from typing import Any, Final
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
@@ -58,6 +67,309 @@ WRITES: Final = frozenset(
 )
 
 
+#: The longest list a request may carry (joint lists, rays, IK limits).
+MAX_LIST: Final = 16384
+
+#: Each served function's parameters, in PyBullet's positional order, as ``name:kind``
+#: (``@other``: a link/joint index of the body named by parameter ``other``).
+SIGNATURES: Final[dict[str, tuple[str, ...]]] = {
+    "calculateInverseDynamics": (
+        "bodyUniqueId:body",
+        "objPositions:dofs",
+        "objVelocities:dofs",
+        "objAccelerations:dofs",
+        "flags:int",
+    ),
+    "calculateInverseKinematics": (
+        "bodyUniqueId:body",
+        "endEffectorLinkIndex:link0",
+        "targetPosition:vec3",
+        "targetOrientation:quat",
+        "lowerLimits:floats",
+        "upperLimits:floats",
+        "jointRanges:floats",
+        "restPoses:floats",
+        "jointDamping:floats",
+        "solver:int",
+        "currentPositions:floats",
+        "maxNumIterations:int",
+        "residualThreshold:float",
+    ),
+    "calculateJacobian": (
+        "bodyUniqueId:body",
+        "linkIndex:link0",
+        "localPosition:vec3",
+        "objPositions:dofs",
+        "objVelocities:dofs",
+        "objAccelerations:dofs",
+    ),
+    "calculateMassMatrix": ("bodyUniqueId:body", "objPositions:dofs", "flags:int"),
+    "getAABB": ("bodyUniqueId:body", "linkIndex:link"),
+    "getBasePositionAndOrientation": ("bodyUniqueId:body",),
+    "getBaseVelocity": ("bodyUniqueId:body",),
+    "getClosestPoints": (
+        "bodyA:body",
+        "bodyB:body",
+        "distance:float",
+        "linkIndexA:link@bodyA",
+        "linkIndexB:link@bodyB",
+    ),
+    "getContactPoints": (
+        "bodyA:body",
+        "bodyB:body",
+        "linkIndexA:link@bodyA",
+        "linkIndexB:link@bodyB",
+    ),
+    "getEulerFromQuaternion": ("quaternion:quat",),
+    "getJointInfo": ("bodyUniqueId:body", "jointIndex:joint"),
+    "getJointState": ("bodyUniqueId:body", "jointIndex:joint"),
+    "getJointStates": ("bodyUniqueId:body", "jointIndices:joints"),
+    "getLinkState": (
+        "bodyUniqueId:body",
+        "linkIndex:link0",
+        "computeLinkVelocity:flag",
+        "computeForwardKinematics:flag",
+    ),
+    "getLinkStates": (
+        "bodyUniqueId:body",
+        "linkIndices:links0",
+        "computeLinkVelocity:flag",
+        "computeForwardKinematics:flag",
+    ),
+    "getNumBodies": (),
+    "getNumJoints": ("bodyUniqueId:body",),
+    "getQuaternionFromEuler": ("eulerAngles:vec3",),
+    "rayTest": ("rayFromPosition:vec3", "rayToPosition:vec3"),
+    "rayTestBatch": (
+        "rayFromPositions:vec3s",
+        "rayToPositions:vec3s",
+        "parentObjectUniqueId:body",
+        "parentLinkIndex:link@parentObjectUniqueId",
+        "numThreads:int",
+        "reportHitNumber:int",
+        "collisionFilterMask:int",
+        "fractionEpsilon:float",
+    ),
+    "applyExternalForce": (
+        "objectUniqueId:body",
+        "linkIndex:link",
+        "forceObj:vec3",
+        "posObj:vec3",
+        "flags:frame",
+    ),
+    "applyExternalTorque": (
+        "objectUniqueId:body",
+        "linkIndex:link",
+        "torqueObj:vec3",
+        "flags:frame",
+    ),
+    "setJointMotorControl2": (
+        "bodyUniqueId:body",
+        "jointIndex:joint",
+        "controlMode:mode",
+        "targetPosition:float",
+        "targetVelocity:float",
+        "force:float",
+        "positionGain:float",
+        "velocityGain:float",
+        "maxVelocity:float",
+    ),
+    "setJointMotorControlArray": (
+        "bodyUniqueId:body",
+        "jointIndices:joints",
+        "controlMode:mode",
+        "targetPositions:perjoint",
+        "targetVelocities:perjoint",
+        "forces:perjoint",
+        "positionGains:perjoint",
+        "velocityGains:perjoint",
+    ),
+    "setJointMotorControlMultiDof": (
+        "bodyUniqueId:body",
+        "jointIndex:joint",
+        "controlMode:mode",
+        "targetPosition:floats",
+        "targetVelocity:floats",
+        "force:floats",
+        "positionGain:float",
+        "velocityGain:float",
+        "maxVelocity:float",
+    ),
+    "setJointMotorControlMultiDofArray": (
+        "bodyUniqueId:body",
+        "jointIndices:joints",
+        "controlMode:mode",
+        "targetPositions:floatss",
+        "targetVelocities:floatss",
+        "forces:floatss",
+        "positionGains:perjoint",
+        "velocityGains:perjoint",
+        "maxVelocities:perjoint",
+    ),
+}
+#: Other names PyBullet accepts for a parameter.
+_ALIASES: Final = {"bodyIndex": "bodyUniqueId"}
+
+
+def _bad(name: str, param: str, reason: str) -> InvalidArgumentError:
+    return InvalidArgumentError(f"pybullet.{name}: {param} {reason}")
+
+
+def _int(value: object) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _number(value: object) -> bool:
+    return (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and abs(value) < 1e300
+    )
+
+
+class _Checker:
+    """Checks one request's arguments against the engine's current bodies."""
+
+    def __init__(self, p: Any, client: int, name: str) -> None:
+        self._p = p
+        self._client = client
+        self._name = name
+
+    def _joints(self, body: int) -> int:
+        count: int = self._p.getNumJoints(body, physicsClientId=self._client)
+        return count
+
+    def _dofs(self, body: int) -> int:
+        p, cid = self._p, self._client
+        return sum(
+            1
+            for j in range(self._joints(body))
+            if p.getJointInfo(body, j, physicsClientId=cid)[2] != p.JOINT_FIXED
+        )
+
+    def _list(self, param: str, value: object, size: int | None = None) -> list[Any]:
+        if not isinstance(value, list):
+            raise _bad(self._name, param, f"must be a list, got {type(value).__name__}")
+        if len(value) > MAX_LIST:
+            raise _bad(self._name, param, f"has {len(value)} items (at most {MAX_LIST})")
+        if size is not None and len(value) != size:
+            raise _bad(self._name, param, f"must have {size} items, got {len(value)}")
+        return value
+
+    def _floats(self, param: str, value: object, size: int | None = None) -> None:
+        for item in self._list(param, value, size):
+            if not _number(item):
+                raise _bad(self._name, param, f"must hold finite numbers, got {item!r}")
+
+    def _index(self, param: str, value: object, low: int, count: int, what: str) -> None:
+        if not _int(value):
+            raise _bad(self._name, param, f"must be an integer {what}, got {value!r}")
+        assert isinstance(value, int)
+        if not low <= value < count:
+            raise _bad(
+                self._name,
+                param,
+                f"{value} is not a {what} of that body (valid: {low} to {count - 1})",
+            )
+
+    def check(self, kinds: dict[str, str], values: dict[str, Any]) -> None:
+        """Raise InvalidArgumentError for the first argument that is not acceptable."""
+        p = self._p
+        bodies = {
+            p.getBodyUniqueId(i, physicsClientId=self._client)
+            for i in range(p.getNumBodies(physicsClientId=self._client))
+        }
+        for param, value in values.items():
+            if kinds[param] == "body" and (not _int(value) or value not in bodies):
+                raise _bad(self._name, param, f"{value!r} is not the id of a body")
+        main = next((v for k, v in values.items() if kinds[k] == "body"), None)
+        for param, value in values.items():
+            kind, _, owner = kinds[param].partition("@")
+            body = values.get(owner, main) if owner else main
+            if kind in ("body",):
+                continue
+            if kind in ("joint", "joints", "link", "link0", "links0", "perjoint", "dofs"):
+                if body is None:
+                    raise _bad(self._name, param, "needs the body it belongs to")
+                joints = self._joints(body)
+            if kind == "joint":
+                self._index(param, value, 0, joints, "joint index")
+            elif kind == "joints":
+                for item in self._list(param, value):
+                    self._index(param, item, 0, joints, "joint index")
+            elif kind == "link":
+                self._index(param, value, -1, joints, "link index (-1: the base)")
+            elif kind == "link0":
+                self._index(param, value, 0, joints, "link index")
+            elif kind == "links0":
+                for item in self._list(param, value):
+                    self._index(param, item, 0, joints, "link index")
+            elif kind == "perjoint":
+                selected = values.get("jointIndices")
+                self._floats(param, value, len(selected) if isinstance(selected, list) else None)
+            elif kind == "dofs":
+                assert body is not None
+                self._floats(param, value, self._dofs(body))
+            elif kind == "floats":
+                self._floats(param, value)
+            elif kind == "floatss":
+                for item in self._list(param, value):
+                    self._floats(param, item)
+            elif kind == "vec3":
+                self._floats(param, value, 3)
+            elif kind == "quat":
+                self._floats(param, value, 4)
+            elif kind == "vec3s":
+                for item in self._list(param, value):
+                    self._floats(param, item, 3)
+            elif kind == "float":
+                if not _number(value):
+                    raise _bad(self._name, param, f"must be a finite number, got {value!r}")
+            elif kind in ("int", "flag"):
+                if not _int(value) and not isinstance(value, bool):
+                    raise _bad(self._name, param, f"must be an integer, got {value!r}")
+                if not -(2**31) <= int(value) < 2**31:
+                    raise _bad(self._name, param, f"{value} is out of range")
+            elif kind == "mode":
+                modes = (p.POSITION_CONTROL, p.VELOCITY_CONTROL, p.TORQUE_CONTROL, p.PD_CONTROL)
+                if not _int(value) or value not in modes:
+                    raise _bad(self._name, param, f"{value!r} is not a control mode")
+            elif kind == "frame" and (
+                not _int(value) or value not in (p.WORLD_FRAME, p.LINK_FRAME)
+            ):
+                raise _bad(self._name, param, f"{value!r} is not WORLD_FRAME or LINK_FRAME")
+
+
+def _bind(
+    name: str, args: list[Any], kwargs: dict[str, Any]
+) -> tuple[dict[str, str], dict[str, Any]]:
+    """The request's arguments by parameter name; unknown or doubled ones are refused."""
+    params = SIGNATURES[name]
+    kinds = dict(param.split(":", 1) for param in params)
+    order = [param.split(":", 1)[0] for param in params]
+    if len(args) > len(order):
+        raise InvalidArgumentError(
+            f"pybullet.{name} takes at most {len(order)} arguments here, got {len(args)}"
+        )
+    values = dict(zip(order, args, strict=False))
+    for key, value in kwargs.items():
+        key = _ALIASES.get(key, key)
+        if key not in kinds:
+            raise InvalidArgumentError(
+                f"pybullet.{name} has no parameter {key!r} served to remote controllers "
+                f"(served: {', '.join(order) or 'none'})"
+            )
+        if key in values:
+            raise InvalidArgumentError(f"pybullet.{name} got {key!r} twice")
+        values[key] = value
+    return kinds, values
+
+
+def _reject_constant(token: str) -> None:
+    raise InvalidArgumentError(f"a pybullet request holds {token}: numbers must be finite")
+
+
 def _plain(value: object) -> object:
     """numpy scalars and arrays as Python numbers and lists (exact)."""
     tolist = getattr(value, "tolist", None)
@@ -76,8 +388,10 @@ def encode_call(name: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> byt
 
 def _decode_call(data: bytes, allowed: frozenset[str]) -> tuple[str, list[Any], dict[str, Any]]:
     try:
-        name, args, kwargs = json.loads(data)
-    except (ValueError, TypeError):
+        name, args, kwargs = json.loads(data, parse_constant=_reject_constant)
+    except InvalidArgumentError:  # (a ValueError: before the clause below)
+        raise
+    except (ValueError, TypeError, RecursionError):
         raise ProtocolError("a pybullet request is not [name, args, kwargs] JSON") from None
     if not isinstance(name, str) or not isinstance(args, list) or not isinstance(kwargs, dict):
         raise ProtocolError("a pybullet request is not [name, args, kwargs] JSON")
@@ -90,7 +404,10 @@ def _decode_call(data: bytes, allowed: frozenset[str]) -> tuple[str, list[Any], 
 
 
 class PhysicsService:
-    """Serves a PyBullet client to remote controllers (install it on a ClockServer)."""
+    """Serves a PyBullet client to remote controllers (install it on a ClockServer).
+
+    Every request is validated before it reaches the engine (see the module docstring).
+    """
 
     def __init__(self, client: int) -> None:
         import pybullet
@@ -104,14 +421,34 @@ class PhysicsService:
         server.provide(SERVICE, self.answer)
         server.subscribe(TOPIC, self.apply)
 
+    def _checked(self, data: bytes, allowed: frozenset[str]) -> tuple[str, dict[str, Any]]:
+        name, args, kwargs = _decode_call(data, allowed)
+        kwargs.pop("physicsClientId", None)
+        kinds, values = _bind(name, args, kwargs)
+        _Checker(self._p, self._client, name).check(kinds, values)
+        return name, values
+
     def answer(self, data: bytes) -> bytes:
-        name, args, kwargs = _decode_call(data, READS)
-        result = getattr(self._p, name)(*args, **kwargs, physicsClientId=self._client)
-        return json.dumps(result).encode()
+        """Answer a read request (validated first).
+
+        :param data: the request, ``[name, args, kwargs]`` as JSON.
+        :returns: the result as JSON.
+        :raises InvalidArgumentError: the function is not served or an argument is invalid.
+        :raises ProtocolError: the request is not such JSON.
+        """
+        name, values = self._checked(data, READS)
+        result = getattr(self._p, name)(**values, physicsClientId=self._client)
+        return json.dumps(result, allow_nan=True).encode()
 
     def apply(self, message: Any) -> None:
-        name, args, kwargs = _decode_call(message.data, WRITES)
-        getattr(self._p, name)(*args, **kwargs, physicsClientId=self._client)
+        """Apply a command (validated first; an invalid one raises and is not applied).
+
+        :param message: the :class:`~evclock.remote.Message` carrying the command.
+        :raises InvalidArgumentError: the function is not served or an argument is invalid.
+        :raises ProtocolError: the request is not such JSON.
+        """
+        name, values = self._checked(message.data, WRITES)
+        getattr(self._p, name)(**values, physicsClientId=self._client)
 
 
 class RemotePhysics:

@@ -1,11 +1,25 @@
 """The wire format: length-prefixed binary frames, versioned by the first one.
 
 Every frame is ``u32 length`` (little-endian, bytes after this field) + ``u8 kind`` + payload.
-The participant opens with HELLO (magic ``EVCLK``, protocol version, mode, name, token); the
-server answers WELCOME (version, current sim time, scenario info as JSON) or REFUSE (a
-reason) and closes. After that, per lockstep round only two fixed-size frames cross:
-GRANT(t) to the participant and DONE(t, next deadline) back, each packed by a precompiled
-``struct`` into one small ``bytes``.
+
+The handshake authenticates both sides without ever sending the token:
+
+1. participant -> HELLO: magic ``EVCLK``, protocol version, mode, name, a fresh 32-byte nonce;
+2. server -> CHALLENGE: its own fresh nonce and, when it has a token, its proof
+   ``HMAC-SHA256(token, "evclock-server" + transcript)``;
+3. participant -> PROOF: ``HMAC-SHA256(token, "evclock-client" + transcript)`` (empty without
+   a token), sent only after it checked the server's proof;
+4. server -> WELCOME (version, current sim time, its frame limit, scenario info as JSON) or
+   REFUSE (a code - final or busy - and a reason), and then closes.
+
+The transcript binds both nonces, the version, the mode and the name, so neither side's proof
+can be replayed to another connection nor reflected to the other side. Until the handshake
+completes a connection may send frames of :data:`PRE_AUTH_MAX_FRAME` bytes at most.
+
+After that, per lockstep round only two fixed-size frames cross: GRANT(t) to the participant
+and DONE(t, next deadline) back, each packed by a precompiled ``struct`` into one small
+``bytes``. A well-framed but invalid frame from a participant is answered with ERROR (the
+kind it was about and why) and otherwise ignored; a broken framing ends the connection.
 
 Frames of one connection are handled in the order they were sent: data a participant
 PUBLISHes before its DONE(t) is in the simulation's hands before that DONE is read, and data
@@ -16,20 +30,35 @@ between sending JUMP(n) and reading JUMPED(n) (sent before the jump was read).
 
 from __future__ import annotations
 
+import hashlib
+import hmac
+import os
 import struct
 from typing import Final
 
 from evclock._errors import ProtocolError
 
 MAGIC: Final = b"EVCLK"
-VERSION: Final = 2  # 2: JUMP / JUMPED (time jumps reach participants)
-#: Frames larger than this are garbage (or a different protocol): the connection is dropped.
+VERSION: Final = 3  # 2: JUMP / JUMPED; 3: mutual challenge-response, ERROR, frame limits
+#: The default limit on a frame after the handshake (``serve(max_frame=...)`` changes it).
 MAX_FRAME: Final = 16 * 1024 * 1024
+#: The largest ``max_frame`` a server accepts.
+MAX_FRAME_LIMIT: Final = 256 * 1024 * 1024
+#: The smallest ``max_frame`` a server accepts (a HELLO, a CALL of a few numbers).
+MIN_FRAME_LIMIT: Final = 4096
+#: Frames before the handshake completed (HELLO, PROOF; CHALLENGE, REFUSE) are at most this.
+PRE_AUTH_MAX_FRAME: Final = 4096
+#: Bytes of a nonce and of an HMAC-SHA256 proof.
+NONCE_SIZE: Final = 32
+PROOF_SIZE: Final = 32
 
 # Frame kinds (one byte, printable for readable dumps).
-HELLO: Final = ord("H")  # participant -> server: magic, version, mode, name, token
-WELCOME: Final = ord("W")  # server -> participant: version, now, info (JSON)
-REFUSE: Final = ord("X")  # server -> participant: reason (UTF-8); the server then closes
+HELLO: Final = ord("H")  # participant -> server: magic, version, mode, name, nonce
+CHALLENGE: Final = ord("A")  # server -> participant: nonce, proof (empty: no token)
+PROOF: Final = ord("Y")  # participant -> server: proof (empty: no token)
+WELCOME: Final = ord("W")  # server -> participant: version, now, max frame, info (JSON)
+REFUSE: Final = ord("X")  # server -> participant: code, reason (UTF-8); the server then closes
+ERROR: Final = ord("E")  # server -> participant: the kind it is about, reason (UTF-8)
 GRANT: Final = ord("G")  # server -> participant: run everything due at t
 TIME: Final = ord("T")  # server -> follower: sim time is now t
 DONE: Final = ord("D")  # participant -> server: finished at t, next deadline (-1: none)
@@ -46,12 +75,15 @@ JUMPED: Final = ord("K")  # participant -> server: jump number (applied; DONEs c
 MODE_LOCKSTEP: Final = 0
 MODE_FOLLOW: Final = 1
 NO_DEADLINE: Final = -1
+#: REFUSE codes: final (wrong token, name taken, version) or busy (try again shortly).
+REFUSE_FINAL: Final = 0
+REFUSE_BUSY: Final = 1
 
 _HEADER = struct.Struct("<IB")
 _STAMP = struct.Struct("<IBq")  # GRANT, TIME
 _DONE = struct.Struct("<IBqq")
 _HELLO_HEAD = struct.Struct("<5sHB")
-_WELCOME_HEAD = struct.Struct("<Hq")
+_WELCOME_HEAD = struct.Struct("<HqI")
 _Q = struct.Struct("<q")
 _I = struct.Struct("<I")
 _IB = struct.Struct("<IB")
@@ -111,11 +143,11 @@ def parse_jumped(payload: bytes) -> int:
     return value
 
 
-def _frame(kind: int, payload: bytes) -> bytes:
-    if len(payload) + 1 > MAX_FRAME:
+def _frame(kind: int, payload: bytes, limit: int = MAX_FRAME_LIMIT) -> bytes:
+    if len(payload) + 1 > limit:
         raise ProtocolError(
-            f"a frame of {len(payload)} bytes exceeds the protocol's {MAX_FRAME}-byte limit; "
-            "send large data another way and its key here"
+            f"a frame of {len(payload) + 1} bytes exceeds the {limit}-byte frame limit of "
+            "this connection; send large data another way and its key here"
         )
     return _HEADER.pack(len(payload) + 1, kind) + payload
 
@@ -127,23 +159,84 @@ def _short(text: str, what: str, limit: int = 255) -> bytes:
     return bytes((len(raw),)) + raw
 
 
-def hello(mode: int, name: str, token: str | None, version: int = VERSION) -> bytes:
-    raw_token = (token or "").encode()
-    payload = (
-        _HELLO_HEAD.pack(MAGIC, version, mode)
+def new_nonce() -> bytes:
+    """A fresh random nonce for one handshake."""
+    return os.urandom(NONCE_SIZE)
+
+
+def hello(mode: int, name: str, nonce: bytes, version: int = VERSION) -> bytes:
+    """HELLO: who joins, how, and the participant's nonce (never a token)."""
+    payload = _HELLO_HEAD.pack(MAGIC, version, mode) + _short(name, "a participant name") + nonce
+    return _frame(HELLO, payload, PRE_AUTH_MAX_FRAME)
+
+
+def transcript(
+    version: int, mode: int, name: str, client_nonce: bytes, server_nonce: bytes
+) -> bytes:
+    """What both proofs cover: the version, the mode, the name and both nonces."""
+    return (
+        struct.pack("<HB", version, mode)
         + _short(name, "a participant name")
-        + struct.pack("<H", len(raw_token))
-        + raw_token
+        + client_nonce
+        + server_nonce
     )
-    return _frame(HELLO, payload)
 
 
-def welcome(now_ns: int, info: bytes) -> bytes:
-    return _frame(WELCOME, _WELCOME_HEAD.pack(VERSION, now_ns) + info)
+def prove(token: str, side: bytes, transcript_bytes: bytes) -> bytes:
+    """``HMAC-SHA256(token, side + transcript)``; ``side`` is b"evclock-server" or
+    b"evclock-client", so a proof of one side is never valid for the other."""
+    return hmac.new(token.encode(), side + transcript_bytes, hashlib.sha256).digest()
 
 
-def refuse(reason: str) -> bytes:
-    return _frame(REFUSE, reason.encode())
+SERVER_SIDE: Final = b"evclock-server"
+CLIENT_SIDE: Final = b"evclock-client"
+
+
+def challenge(nonce: bytes, proof: bytes) -> bytes:
+    """CHALLENGE: the server's nonce and its proof (empty when it has no token)."""
+    return _frame(CHALLENGE, nonce + proof, PRE_AUTH_MAX_FRAME)
+
+
+def parse_challenge(payload: bytes) -> tuple[bytes, bytes]:
+    """``(server nonce, server proof)``; the proof is empty when the server has no token."""
+    if len(payload) not in (NONCE_SIZE, NONCE_SIZE + PROOF_SIZE):
+        raise ProtocolError(f"a CHALLENGE of {len(payload)} bytes (expected 32 or 64)")
+    return payload[:NONCE_SIZE], payload[NONCE_SIZE:]
+
+
+def proof(value: bytes) -> bytes:
+    """PROOF: the participant's proof (empty without a token)."""
+    return _frame(PROOF, value, PRE_AUTH_MAX_FRAME)
+
+
+def welcome(now_ns: int, max_frame: int, info: bytes) -> bytes:
+    """WELCOME: joined; the current sim time, the server's frame limit, its scenario info."""
+    return _frame(WELCOME, _WELCOME_HEAD.pack(VERSION, now_ns, max_frame) + info)
+
+
+def refuse(reason: str, code: int = REFUSE_FINAL) -> bytes:
+    """REFUSE: not joined (``REFUSE_BUSY``: try again shortly); the server then closes."""
+    return _frame(
+        REFUSE, bytes((code,)) + reason.encode()[: PRE_AUTH_MAX_FRAME - 16], PRE_AUTH_MAX_FRAME
+    )
+
+
+def parse_refuse(payload: bytes) -> tuple[int, str]:
+    """``(code, reason)``."""
+    if not payload:
+        return REFUSE_FINAL, "no reason given"
+    return payload[0], payload[1:].decode(errors="replace")
+
+
+def error(about: int, reason: str) -> bytes:
+    """ERROR: a frame of kind ``about`` from the participant was refused, and why."""
+    return _frame(ERROR, bytes((about & 0xFF,)) + reason.encode()[:65536])
+
+
+def parse_error(payload: bytes) -> tuple[int, str]:
+    """``(kind the error is about, reason)``."""
+    _need(payload, 1, "ERROR")
+    return payload[0], payload[1:].decode(errors="replace")
 
 
 def closing(reason: str) -> bytes:
@@ -154,8 +247,8 @@ def bye() -> bytes:
     return _frame(BYE, b"")
 
 
-def publish(t_ns: int, topic: str, data: bytes) -> bytes:
-    return _frame(PUBLISH, _Q.pack(t_ns) + _short(topic, "a topic name") + data)
+def publish(t_ns: int, topic: str, data: bytes, limit: int = MAX_FRAME_LIMIT) -> bytes:
+    return _frame(PUBLISH, _Q.pack(t_ns) + _short(topic, "a topic name") + data, limit)
 
 
 def subscribe(topic: str) -> bytes:
@@ -168,8 +261,8 @@ def deliver(t_ns: int, sender: str, topic: str, data: bytes) -> bytes:
     )
 
 
-def call(call_id: int, service: str, data: bytes) -> bytes:
-    return _frame(CALL, _I.pack(call_id) + _short(service, "a service name") + data)
+def call(call_id: int, service: str, data: bytes, limit: int = MAX_FRAME_LIMIT) -> bytes:
+    return _frame(CALL, _I.pack(call_id) + _short(service, "a service name") + data, limit)
 
 
 def reply(call_id: int, ok: bool, data: bytes) -> bytes:
@@ -180,14 +273,21 @@ def reply(call_id: int, ok: bool, data: bytes) -> bytes:
 
 
 class Reader:
-    """Splits a byte stream into ``(kind, payload)`` frames."""
+    """Splits a byte stream into ``(kind, payload)`` frames of at most ``limit`` bytes.
 
-    __slots__ = ("pending",)
+    A frame whose header announces more than ``limit`` bytes is a :class:`ProtocolError`
+    before any of it is buffered: a reader never holds more than ``limit + 4`` bytes of a
+    partial frame (plus the one read being split).
+    """
 
-    def __init__(self) -> None:
+    __slots__ = ("limit", "pending")
+
+    def __init__(self, limit: int = MAX_FRAME) -> None:
         #: The bytes of a partial frame received so far: empty between frames (read as a
         #: plain attribute on every lockstep round, where a property would cost a call).
         self.pending = bytearray()
+        #: The largest frame accepted (length field: kind byte + payload).
+        self.limit = limit
 
     @property
     def between_frames(self) -> bool:
@@ -199,18 +299,22 @@ class Reader:
         buf = self.pending
         if not buf and len(data) >= 5:  # the hot path: exactly one whole frame (a GRANT, a DONE)
             length, kind = _HEADER.unpack_from(data)
-            if len(data) == 4 + length and 0 < length <= MAX_FRAME:
+            if len(data) == 4 + length and 0 < length <= self.limit:
                 return [(kind, data[5:])]
         buf += data
         frames = []
         pos = 0
         end = len(buf)
         unpack = _HEADER.unpack_from
+        limit = self.limit
         while end - pos >= 5:
             length, kind = unpack(buf, pos)
-            if length == 0 or length > MAX_FRAME:
+            if length == 0 or length > limit:
+                buf.clear()
                 raise ProtocolError(
-                    f"bad frame length {length} (not an evclock clock peer, or a corrupted stream)"
+                    f"bad frame length {length}: the limit of this connection is {limit} "
+                    "bytes (not an evclock clock peer, a frame too large for the server's "
+                    "max_frame, or a corrupted stream)"
                 )
             if end - pos - 4 < length:
                 break
@@ -239,29 +343,35 @@ def _need(payload: bytes, size: int, what: str) -> None:
         raise ProtocolError(f"truncated {what} frame ({len(payload)} bytes, needs {size})")
 
 
-def parse_hello(payload: bytes) -> tuple[int, int, str, str]:
-    """``(version, mode, name, token)``; ProtocolError for anything but an evclock HELLO."""
+def parse_hello(payload: bytes) -> tuple[int, int, str, bytes]:
+    """``(version, mode, name, nonce)``; ProtocolError for anything but an evclock HELLO.
+
+    A HELLO of another version returns its version with an empty name and nonce (its layout
+    after the version may differ): the caller refuses it naming both versions.
+    """
     if payload[:5] != MAGIC[: len(payload[:5])] or len(payload) < _HELLO_HEAD.size:
         raise ProtocolError("the first frame is not an evclock HELLO")
     magic, version, mode = _HELLO_HEAD.unpack_from(payload)
     if magic != MAGIC:
         raise ProtocolError("the first frame is not an evclock HELLO")
     if version != VERSION:
-        return version, mode, "", ""
+        return version, mode, "", b""
     name, pos = _take_short(payload, _HELLO_HEAD.size, "the participant name")
-    _need(payload, pos + 2, "HELLO")
-    (token_size,) = struct.unpack_from("<H", payload, pos)
-    token = payload[pos + 2 : pos + 2 + token_size]
+    nonce = payload[pos:]
+    if len(nonce) != NONCE_SIZE:
+        raise ProtocolError(f"a HELLO nonce of {len(nonce)} bytes (expected {NONCE_SIZE})")
     if mode not in (MODE_LOCKSTEP, MODE_FOLLOW):
         raise ProtocolError(f"unknown participant mode {mode}")
-    return version, mode, name, token.decode(errors="replace")
+    return version, mode, name, nonce
 
 
-def parse_welcome(payload: bytes) -> tuple[int, int, bytes]:
-    """``(version, now_ns, info)``."""
+def parse_welcome(payload: bytes) -> tuple[int, int, int, bytes]:
+    """``(version, now_ns, max_frame, info)``."""
+    if len(payload) >= 2 and struct.unpack_from("<H", payload)[0] != VERSION:
+        return struct.unpack_from("<H", payload)[0], 0, 0, b""
     _need(payload, _WELCOME_HEAD.size, "WELCOME")
-    version, now_ns = _WELCOME_HEAD.unpack_from(payload)
-    return version, now_ns, payload[_WELCOME_HEAD.size :]
+    version, now_ns, max_frame = _WELCOME_HEAD.unpack_from(payload)
+    return version, now_ns, max_frame, payload[_WELCOME_HEAD.size :]
 
 
 def parse_stamp(payload: bytes) -> int:

@@ -34,10 +34,9 @@ import logging
 import operator
 import os
 import socket
-import tempfile
 import threading
 import time
-from collections.abc import AsyncIterator, Callable, Mapping
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from typing import Any, Final
 
 from evclock._errors import (
@@ -51,7 +50,13 @@ from evclock.hosts._loop import SimEventLoop
 from evclock.kernel._jumps import JumpThreshold, TimeJump
 from evclock.outside._threads import mark_internal
 from evclock.remote import _protocol as proto
-from evclock.remote._address import bound_address, listen, parse_address
+from evclock.remote._address import (
+    bound_address,
+    listen,
+    parse_address,
+    peer_credentials,
+    private_dir,
+)
 from evclock.time._time import SIM, Duration, Time, new_time
 
 log = logging.getLogger("evclock.remote")
@@ -64,10 +69,14 @@ DEFAULT_STEP_TIMEOUT: Final = 30.0
 DEFAULT_JOIN_TIMEOUT: Final = 60.0
 #: Wall seconds between keepalives to waiting participants (their ``timeout`` must be longer).
 KEEPALIVE: Final = 0.2
-#: Wall seconds a new connection has to send its HELLO.
+#: Wall seconds a new connection has to complete its handshake (HELLO and PROOF).
 HELLO_TIMEOUT: Final = 5.0
+#: Connections in their handshake at once; more are refused as busy (the participant retries).
+MAX_PENDING: Final = 64
 #: A peer whose unsent backlog grows past this many bytes is not reading: a fault.
 _MAX_BACKLOG: Final = 64 * 1024 * 1024
+#: Bad frames answered with ERROR per participant before it is treated as lost (a flood).
+MAX_ERRORS: Final = 10_000
 
 
 @dataclasses.dataclass(frozen=True, slots=True)
@@ -92,7 +101,10 @@ class _Peer:
 
     __slots__ = (
         "accepted_at",
+        "client_nonce",
         "deadline",
+        "errors",
+        "greeted",
         "index",
         "jump_acked",
         "jump_sent",
@@ -101,7 +113,9 @@ class _Peer:
         "name",
         "out",
         "outbox",
+        "pid",
         "reader",
+        "server_nonce",
         "silent_reported",
         "sock",
         "stale_time",
@@ -112,10 +126,15 @@ class _Peer:
 
     def __init__(self, sock: socket.socket) -> None:
         self.sock = sock
-        self.reader = proto.Reader()
+        self.reader = proto.Reader(proto.PRE_AUTH_MAX_FRAME)  # until the handshake completes
         self.out = bytearray()
         self.accepted_at = time.monotonic()
-        self.name = ""  # empty until the HELLO is accepted
+        self.pid: int | None = None  # SO_PEERCRED, on a Unix socket
+        self.greeted = ""  # the name its HELLO gave (its PROOF is awaited)
+        self.client_nonce = b""
+        self.server_nonce = b""
+        self.errors = 0  # bad frames answered with ERROR so far
+        self.name = ""  # empty until the handshake completed
         self.mode = proto.MODE_LOCKSTEP
         self.index = -1
         self.working_at: int | None = None
@@ -131,12 +150,31 @@ class _Peer:
 
     def describe(self) -> str:
         mode = "lockstep" if self.mode == proto.MODE_LOCKSTEP else "follow"
-        return f"{self.name!r} ({mode})"
+        pid = "" if self.pid is None else f", pid {self.pid}"
+        return f"{self.name!r} ({mode}{pid})"
+
+    def last_did(self) -> str:
+        """What it was last seen doing, for the message that reports it lost."""
+        if self.working_at is not None:
+            since = self.working_since
+            waited = 0.0 if since is None else time.monotonic() - since
+            return (
+                f"it was last granted {self.working_at / 1e9:.6f} s of sim time and had not "
+                f"answered for {waited:.1f} s of wall time"
+            )
+        if self.deadline is not None:
+            return (
+                f"it had finished its step and asked to run again at "
+                f"{self.deadline / 1e9:.6f} s of sim time"
+            )
+        if self.mode == proto.MODE_LOCKSTEP:
+            return "it had finished its step with no deadline ahead"
+        return "it was following the simulation's time"
 
 
 def default_address() -> str:
-    """A per-process Unix socket path in the temporary directory."""
-    return f"unix://{tempfile.gettempdir()}/evclock-{os.getpid()}.sock"
+    """A per-process Unix socket in the user's private directory (see ``private_dir``)."""
+    return f"unix://{private_dir()}/sim-{os.getpid()}.sock"
 
 
 class ClockServer:
@@ -157,11 +195,14 @@ class ClockServer:
         ``?token=``).
     :param info: JSON-serialisable facts given to every participant at join.
     :param allow_remote: allow listening on a non-loopback address (which needs a token).
-    :raises InvalidArgumentError: an unknown ``on_fault``, a bad ``step_timeout``, an
-        invalid or unusable address, a non-loopback address without a token or without
-        ``allow_remote``, or ``info`` that is not JSON-serialisable.
-    :raises InvalidTypeError: ``token`` is not a non-empty string, or ``address`` is not a
-        string.
+    :param max_frame: the largest frame (bytes) a joined participant may send.
+    :param peer_uids: user ids allowed to join over a Unix socket (default: this user's).
+    :raises InvalidArgumentError: an unknown ``on_fault``, a bad ``step_timeout`` or
+        ``max_frame``, an invalid or unusable address, a TCP address without a token, a
+        non-loopback address without ``allow_remote``, or ``info`` that is not
+        JSON-serialisable.
+    :raises InvalidTypeError: ``token`` is not a non-empty string, ``address`` is not a
+        string, or ``peer_uids`` holds something other than integers.
     """
 
     def __init__(
@@ -174,7 +215,21 @@ class ClockServer:
         token: str | None = None,
         info: Mapping[str, Any] | None = None,
         allow_remote: bool = False,
+        max_frame: int = proto.MAX_FRAME,
+        peer_uids: Iterable[int] | None = None,
     ) -> None:
+        if (
+            isinstance(max_frame, bool)
+            or not isinstance(max_frame, int)
+            or not proto.MIN_FRAME_LIMIT <= max_frame <= proto.MAX_FRAME_LIMIT
+        ):
+            raise InvalidArgumentError(
+                f"max_frame must be a number of bytes from {proto.MIN_FRAME_LIMIT} to "
+                f"{proto.MAX_FRAME_LIMIT}, got {max_frame!r}"
+            )
+        uids = (os.getuid(),) if peer_uids is None else tuple(peer_uids)
+        if not all(isinstance(u, int) and not isinstance(u, bool) for u in uids):
+            raise InvalidTypeError(f"peer_uids must be integer user ids, got {peer_uids!r}")
         if on_fault not in FAULT_POLICIES:
             raise InvalidArgumentError(
                 f"on_fault must be one of {', '.join(FAULT_POLICIES)}, got {on_fault!r}"
@@ -192,10 +247,11 @@ class ClockServer:
             raise InvalidTypeError("token must be a non-empty string or None")
         parsed = parse_address(address, participant=False)
         token = token if token is not None else parsed.token
-        if not parsed.is_loopback and token is None:
+        if parsed.scheme == "tcp" and token is None:
             raise InvalidArgumentError(
-                f"serving on the non-loopback address {parsed} needs a shared token "
-                "(token=... or ?token=... in the address)"
+                f"serving on {parsed} needs a shared token (token=... or ?token=... in the "
+                "address): any user of the machine can reach a tcp port, so participants "
+                "must prove they know it (it is never sent); or serve on a unix:// socket"
             )
         try:
             self._info = json.dumps(dict(info or {}), sort_keys=True).encode()
@@ -207,6 +263,8 @@ class ClockServer:
         self._policy = on_fault
         self._step_timeout = None if step_timeout is None else float(step_timeout)
         self._token = token
+        self._max_frame = max_frame
+        self._peer_uids = uids
         self._listener = listen(parsed, allow_remote=allow_remote)
         self._address = bound_address(self._listener, parsed)
         self._pending: list[_Peer] = []  # connected, HELLO not yet accepted
@@ -329,9 +387,20 @@ class ClockServer:
         finally:
             self._join_deadline = None
 
-    async def wait_until_left(self) -> None:
-        """Wait until every participant has left (or was dropped)."""
-        await self._wait(lambda: not self._peers)
+    async def wait_until_left(self, *names: str) -> None:
+        """Wait until the named participants (default: every participant) have left or were
+        dropped.
+
+        :param names: the participants to wait for; a follower that stays joined does not
+            keep a simulation waiting for its lockstep participants.
+        """
+        for name in names:
+            if not isinstance(name, str):
+                raise InvalidTypeError(f"participant names are strings, got {name!r}")
+        if names:
+            await self._wait(lambda: not any(p.name in names for p in self._peers))
+        else:
+            await self._wait(lambda: not self._peers)
 
     def close(self, reason: str = "the simulation ended") -> None:
         """Stop serving: every participant gets :class:`~evclock.ClockLostError` naming
@@ -411,6 +480,28 @@ class ClockServer:
             if sock.family != socket.AF_UNIX:
                 sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             peer = _Peer(sock)
+            try:
+                cred = peer_credentials(sock)
+            except OSError as exc:
+                log.warning("clock server: cannot read a connection's credentials: %s", exc)
+                sock.close()
+                continue
+            if cred is not None:
+                peer.pid, uid = cred
+                if uid not in self._peer_uids:
+                    self._refuse(
+                        peer,
+                        f"user id {uid} may not join this clock server (it admits user ids "
+                        f"{', '.join(map(str, self._peer_uids))}; serve with peer_uids=...)",
+                    )
+                    continue
+            if len(self._pending) >= MAX_PENDING:
+                self._refuse(
+                    peer,
+                    f"busy: {MAX_PENDING} connections are in their handshake; try again",
+                    proto.REFUSE_BUSY,
+                )
+                continue
             self._pending.append(peer)
             self._loop.add_reader(sock, self._on_readable, peer)
             # The server holds sim time exactly while a peer's traffic matters (a working
@@ -420,7 +511,8 @@ class ClockServer:
 
     def _on_readable(self, peer: _Peer) -> None:
         try:
-            data = peer.sock.recv(262144)
+            # Before the handshake a read never exceeds the pre-authentication frame limit.
+            data = peer.sock.recv(262144 if peer.name else proto.PRE_AUTH_MAX_FRAME + 5)
         except (BlockingIOError, InterruptedError):
             return
         except OSError as exc:
@@ -435,29 +527,55 @@ class ClockServer:
                 try:
                     self._on_done(peer, t_ns, next_ns)
                 except ProtocolError as exc:
-                    self._lost(peer, f"broke the protocol ({exc})")
+                    self._bad_frame(peer, kind, str(exc))
                 return
         try:
             frames = peer.reader.feed(data)
-            for kind, payload in frames:
-                if peer.sock.fileno() < 0:
-                    return  # removed by an earlier frame of this batch
-                self._handle(peer, kind, payload)
-        except ProtocolError as exc:
+        except ProtocolError as exc:  # the framing is broken: nothing after it can be read
             if peer.name:
-                self._lost(peer, f"broke the protocol ({exc})")
+                self._lost(peer, f"broke the protocol framing ({exc})")
             else:
                 self._refuse(peer, f"not an evclock clock client: {exc}")
+            return
+        for kind, payload in frames:
+            if peer.sock.fileno() < 0:
+                return  # removed by an earlier frame of this batch
+            if not peer.name:
+                try:
+                    self._handshake(peer, kind, payload)
+                except ProtocolError as exc:
+                    self._refuse(peer, f"not an evclock clock client: {exc}")
+                continue
+            try:
+                self._handle(peer, kind, payload)
+            except (ProtocolError, ValueError, TypeError) as exc:
+                self._bad_frame(peer, kind, str(exc))
+
+    def _bad_frame(self, peer: _Peer, kind: int, reason: str) -> None:
+        """A well-framed frame the simulation refuses: the participant is told why, the
+        frame is ignored, and the simulation goes on (a flood of them is a fault)."""
+        if peer.lost or peer not in self._peers:
+            return
+        peer.errors += 1
+        label = chr(kind) if 32 < kind < 127 else str(kind)
+        log.warning(
+            "clock server: refused a frame of kind %s from %s: %s", label, peer.describe(), reason
+        )
+        if peer.errors > MAX_ERRORS:
+            self._lost(peer, f"sent more than {MAX_ERRORS} invalid frames")
+            return
+        self._send(peer, proto.error(kind, f"frame of kind {label!r} refused: {reason}"))
 
     def _handle(self, peer: _Peer, kind: int, payload: bytes) -> None:
-        if not peer.name:
-            if kind != proto.HELLO:
-                raise ProtocolError("the first frame must be HELLO")
-            self._on_hello(peer, payload)
-        elif kind == proto.DONE:
+        if kind == proto.DONE:
             self._on_done(peer, *proto.parse_done(payload))
         elif kind == proto.PUBLISH:
             sent_at, topic, data = proto.parse_publish(payload)
+            if peer.mode == proto.MODE_FOLLOW:
+                raise ProtocolError(
+                    "a follower only reads time and data: it cannot publish to the simulation "
+                    "(join with ?mode=lockstep to take part)"
+                )
             if peer.mode == proto.MODE_LOCKSTEP:
                 if peer.working_at is None:
                     raise ProtocolError("PUBLISH from a lockstep participant that is not working")
@@ -487,20 +605,47 @@ class ClockServer:
         else:
             raise ProtocolError(f"unexpected frame kind {kind!r} from a participant")
 
-    def _on_hello(self, peer: _Peer, payload: bytes) -> None:
-        version, mode, name, token = proto.parse_hello(payload)
-        if version != proto.VERSION:
-            self._refuse(
-                peer,
-                f"protocol version {version} is not supported: this clock server speaks "
-                f"version {proto.VERSION}; run the same evclock version on both sides",
+    # ------------------------------------------------------------ the handshake
+
+    def _transcript(self, peer: _Peer) -> bytes:
+        return proto.transcript(
+            proto.VERSION, peer.mode, peer.greeted, peer.client_nonce, peer.server_nonce
+        )
+
+    def _handshake(self, peer: _Peer, kind: int, payload: bytes) -> None:
+        """HELLO -> CHALLENGE (the server's proof first), PROOF -> WELCOME or REFUSE."""
+        if not peer.greeted:
+            if kind != proto.HELLO:
+                raise ProtocolError("the first frame must be HELLO")
+            version, mode, name, nonce = proto.parse_hello(payload)
+            if version != proto.VERSION:
+                self._refuse(
+                    peer,
+                    f"protocol version {version} is not supported: this clock server speaks "
+                    f"version {proto.VERSION}; run the same evclock version on both sides",
+                )
+                return
+            peer.greeted, peer.mode, peer.client_nonce = name, mode, nonce
+            peer.server_nonce = proto.new_nonce()
+            token = self._token
+            mine = (
+                b""
+                if token is None
+                else proto.prove(token, proto.SERVER_SIDE, self._transcript(peer))
             )
+            self._send(peer, proto.challenge(peer.server_nonce, mine))
             return
-        if self._token is not None and not hmac.compare_digest(
-            token.encode(), self._token.encode()
+        if kind != proto.PROOF:
+            raise ProtocolError("the second frame must be PROOF")
+        token = self._token
+        if token is not None and not hmac.compare_digest(
+            payload, proto.prove(token, proto.CLIENT_SIDE, self._transcript(peer))
         ):
             self._refuse(peer, "wrong or missing token: join with ?token=... in the clock address")
             return
+        self._on_hello(peer, peer.mode, peer.greeted)
+
+    def _on_hello(self, peer: _Peer, mode: int, name: str) -> None:
         replaced = None
         for other in self._peers:
             if other.name == name:
@@ -516,7 +661,8 @@ class ClockServer:
         now = self._kernel.now_ns
         peer.name = name
         peer.mode = mode
-        self._send(peer, proto.welcome(now, self._info))
+        peer.reader.limit = self._max_frame  # authenticated: the documented frame limit
+        self._send(peer, proto.welcome(now, self._max_frame, self._info))
         if replaced is not None:
             # A paused simulation waited for this name: the newcomer takes its place (and
             # the hold the lost one kept).
@@ -538,10 +684,11 @@ class ClockServer:
             self._add_step_hook()
         self._wake_waiters()
 
-    def _refuse(self, peer: _Peer, reason: str) -> None:
-        log.warning("clock server: refused a connection: %s", reason)
+    def _refuse(self, peer: _Peer, reason: str, code: int = proto.REFUSE_FINAL) -> None:
+        pid = "" if peer.pid is None else f" (pid {peer.pid})"
+        log.warning("clock server: refused a connection%s: %s", pid, reason)
         with contextlib.suppress(OSError):
-            peer.sock.send(proto.refuse(reason))
+            peer.sock.send(proto.refuse(reason, code))
         if peer in self._pending:
             self._pending.remove(peer)
         self._disconnect(peer)
@@ -683,6 +830,15 @@ class ClockServer:
                 try:
                     callback(message)
                 except Exception as exc:
+                    origin = self._peer_named(sender)
+                    if origin is not None:  # the participant's data was refused: tell it
+                        self._bad_frame(
+                            origin,
+                            proto.PUBLISH,
+                            f"the simulation refused data on topic {topic!r}: "
+                            f"{type(exc).__name__}: {exc}",
+                        )
+                        continue
                     self._loop.call_exception_handler(
                         {
                             "message": f"subscriber {callback!r} of topic {topic!r} raised",
@@ -696,6 +852,12 @@ class ClockServer:
                 self._send(peer, frame)
                 if peer.mode == proto.MODE_LOCKSTEP and peer not in regrant:
                     regrant.append(peer)
+
+    def _peer_named(self, name: str) -> _Peer | None:
+        for peer in self._peers:
+            if peer.name == name and not peer.lost:
+                return peer
+        return None
 
     def _grant_all(self, peers: list[_Peer]) -> None:
         now = self._kernel.now_ns
@@ -836,7 +998,7 @@ class ClockServer:
         self._fault(peer, reason, dead=True)
 
     def _fault(self, peer: _Peer, reason: str, *, dead: bool) -> None:
-        what = f"participant {peer.describe()} {reason} at {self._now()}"
+        what = f"participant {peer.describe()} {reason} at {self._now()} ({peer.last_did()})"
         if peer.mode == proto.MODE_FOLLOW:  # it never holds the simulation: just forget it
             log.warning("clock server: %s; removed it (followers never hold sim time)", what)
             self._remove(peer)
@@ -910,7 +1072,9 @@ class ClockServer:
         next_keepalive = time.monotonic() + KEEPALIVE
         while not self._stop_watch.wait(interval):
             now = time.monotonic()
-            if now >= next_keepalive and self._peers:
+            if now >= next_keepalive and (
+                self._peers or self._holds or self._join_deadline is not None
+            ):
                 next_keepalive = now + KEEPALIVE
                 try:
                     self._loop.call_soon_threadsafe(self._keepalive)
@@ -935,19 +1099,32 @@ class ClockServer:
                     return
 
     def _keepalive(self) -> None:
-        """Tell every waiting participant the time: a stopped server is one that goes quiet."""
+        """Tell every waiting participant the time: a stopped server is one that goes quiet.
+
+        The server's own holds are bounded by the server (the join timeout, ``step_timeout``,
+        the ``pause`` policy waiting for a replacement): they are not a stall of the loop, so
+        the loop's ``stall_timeout`` starts again while one of them is what holds time.
+        """
+        if self._join_deadline is not None or (
+            self._holds and (self._step_timeout is not None or any(p.lost for p in self._peers))
+        ):
+            self._loop_bound_restarts()
         now = self._kernel.now_ns
         frame = proto.time_frame(now)
         for peer in self._peers:
             if peer.working_at is None and not peer.lost and not peer.out:
                 self._send(peer, frame)
 
+    def _loop_bound_restarts(self) -> None:
+        # The server's holds in force are bounded by the server: not a stall of the loop.
+        self._loop.restart_stall_bound()
+
     def _check_timeouts(self) -> None:
         self._check_scheduled = False
         now = time.monotonic()
         for peer in list(self._pending):
             if now - peer.accepted_at > HELLO_TIMEOUT:
-                self._refuse(peer, f"no HELLO within {HELLO_TIMEOUT:g} s")
+                self._refuse(peer, f"no complete handshake within {HELLO_TIMEOUT:g} s")
         if self._join_deadline is not None and now > self._join_deadline:
             self._join_deadline = None
             error = ParticipantLostError(
@@ -984,6 +1161,8 @@ async def serve(
     token: str | None = None,
     info: Mapping[str, Any] | None = None,
     allow_remote: bool = False,
+    max_frame: int = proto.MAX_FRAME,
+    peer_uids: Iterable[int] | None = None,
 ) -> AsyncIterator[ClockServer]:
     """Serve the running :class:`~evclock.SimEventLoop`'s sim time while the block runs::
 
@@ -991,19 +1170,28 @@ async def serve(
             await server.wait_for_participants("controller")
             ...
 
-    :param address: ``unix:///path.sock`` (default: a per-process path in the temp dir) or
-        ``tcp://127.0.0.1:PORT`` (port 0: any free port; see :attr:`ClockServer.address`).
+    :param address: ``unix:///path.sock`` (default: a per-process socket in the user's
+        private directory, ``$XDG_RUNTIME_DIR/evclock`` or ``evclock-UID`` in the temp dir,
+        mode 0700) or ``tcp://127.0.0.1:PORT?token=...`` (port 0: any free port; see
+        :attr:`ClockServer.address`).
     :param on_fault: what a dead, stopped or silent lockstep participant causes: ``abort``
-        (default: :class:`~evclock.remote.ParticipantLostError` naming it is raised from this
-        block),
-        ``drop`` (continue without it) or ``pause`` (hold sim time until it answers or a
-        participant of the same name joins).
+        (default: :class:`~evclock.remote.ParticipantLostError` naming it and what it last
+        did is raised from this block),
+        ``drop`` (continue without it) or ``pause`` (hold sim time, without limit - the
+        loop's ``stall_timeout`` does not apply - until it answers or a participant of the
+        same name joins).
     :param step_timeout: wall seconds a lockstep participant may work on one step before
-        the policy applies (None: no limit; a killed one is detected at once regardless).
-    :param token: a shared secret participants must present (``?token=`` in their address);
-        required to serve on a non-loopback address, which also needs ``allow_remote``.
+        the policy applies (None: no limit of the server's own, so the loop's
+        ``stall_timeout`` applies; a killed one is detected at once regardless).
+    :param token: a shared secret both sides prove they know (HMAC challenge-response, it is
+        never sent); ``?token=`` in the participants' address. Required on TCP; a
+        non-loopback address also needs ``allow_remote``.
     :param info: JSON-serialisable facts given to every participant at join (scenario, seed).
     :param allow_remote: allow serving on a non-loopback address (``tcp://0.0.0.0:PORT``).
+    :param max_frame: the largest frame in bytes a joined participant may send (default
+        16 MiB; 4 KiB to 256 MiB); before the handshake completes the limit is 4 KiB.
+    :param peer_uids: user ids that may join over a Unix socket (``SO_PEERCRED``; default:
+        only the user running the simulation).
     :returns: an async context manager yielding the :class:`ClockServer`.
     :raises InvalidTypeError: the running loop is not a :class:`~evclock.SimEventLoop`.
     :raises InvalidArgumentError: an invalid option or address (see :class:`ClockServer`).
@@ -1023,6 +1211,8 @@ async def serve(
         token=token,
         info=info,
         allow_remote=allow_remote,
+        max_frame=max_frame,
+        peer_uids=peer_uids,
     )
     owner = server._owner = asyncio.current_task()
     try:

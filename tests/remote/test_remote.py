@@ -406,11 +406,15 @@ def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
             await server.wait_until_left()
         code, out, err = finish(right)
         assert code == 0, err
-        return [refused.strip().splitlines()[-1], out]
+        return [refused.strip().splitlines()[-1], out, server.address]
 
-    wrong, right = evclock.run(main())
-    assert "JoinRefusedError" in wrong
-    assert "wrong or missing token" in wrong
+    wrong, right, served = evclock.run(main())
+    # The server could not prove it knows "nope": the participant sends it nothing.
+    assert wrong == (
+        f"evclock.remote.JoinRefusedError: the clock server at {served} could not "
+        "prove it knows the token: it is not the simulation you meant (or the tokens "
+        "differ); the token was not sent to it"
+    )
     assert json.loads(right) == [0, 1_000_000]
 
 
@@ -652,8 +656,8 @@ def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Pa
 def test_a_busy_tcp_port_is_a_clear_error() -> None:
     async def main() -> None:
         async with (
-            evclock.remote.serve("tcp://127.0.0.1:0") as first,
-            evclock.remote.serve(first.address),
+            evclock.remote.serve("tcp://127.0.0.1:0", token="t") as first,
+            evclock.remote.serve(first.address, token="t"),
         ):
             pass
 
@@ -930,14 +934,16 @@ def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
     proc = spawn(
         tmp_path,
         """
-        import json, evclock
+        import asyncio, json, evclock
         async def main():
             clock = evclock.clock()
             link = evclock.remote.participant()
             await clock.sleep(0.5)
-            link.publish("ready", b"")
+            sleeping = asyncio.ensure_future(clock.sleep(3600))
+            await asyncio.sleep(0)  # asleep before it says so (the jump may come with the reply)
+            link.call("ready")  # a follower cannot publish; it may ask
             try:
-                await clock.sleep(3600)
+                await sleeping
             except evclock.ClockJumpedError as exc:
                 print(json.dumps([clock.now().nanoseconds, exc.jump.before.nanoseconds,
                                   exc.jump.after.nanoseconds]))
@@ -951,7 +957,7 @@ def test_a_time_jump_reaches_a_follower(tmp_path: Path) -> None:
         clock = evclock.clock()
         async with evclock.remote.serve(url) as server:
             ready = asyncio.Event()
-            server.subscribe("ready", lambda message: ready.set())
+            server.provide("ready", lambda _: ready.set() or b"")
             await server.wait_for_participants("f")
             await clock.sleep(0.5)
             await ready.wait()
@@ -979,7 +985,7 @@ class ScriptedServer:
         self._listener.listen(1)
         self._listener.settimeout(10)
         self._script = script
-        self._thread = threading.Thread(target=self._serve)
+        self._thread = threading.Thread(target=self._serve, daemon=True)
         self._thread.start()
 
     def _serve(self) -> None:
@@ -988,7 +994,12 @@ class ScriptedServer:
             conn.settimeout(10)
             self.conn = conn
             self.expect(proto.HELLO)
+            self.send(proto.challenge(proto.new_nonce(), b""))  # a server without a token
+            self.expect(proto.PROOF)
             self._script(self)
+            # Parked in a read without timeout, as a server's reader is (a thread in a timed
+            # read would hold the participant's sim time); finish() bounds the whole wait.
+            conn.settimeout(None)
             while data := conn.recv(4096):  # until the participant leaves (BYE, EOF)
                 self.received.extend(self._reader.feed(data))
 
@@ -1019,7 +1030,10 @@ def test_frames_that_come_with_the_welcome_are_not_lost(tmp_path: Path) -> None:
     # still at 0) must be applied.
     path = tmp_path / "scripted.sock"
     server = ScriptedServer(
-        path, lambda s: s.send(proto.welcome(0, b"{}") + proto.jump(1, 500_000_000, 100_000_000))
+        path,
+        lambda s: s.send(
+            proto.welcome(0, proto.MAX_FRAME, b"{}") + proto.jump(1, 500_000_000, 100_000_000)
+        ),
     )
     seen: list[int] = []
 
@@ -1050,7 +1064,7 @@ def test_a_lockstep_participant_does_its_granted_round_before_the_jump_after_it(
     ms = 1_000_000
 
     def script(s: ScriptedServer) -> None:
-        s.send(proto.welcome(0, b"{}"))
+        s.send(proto.welcome(0, proto.MAX_FRAME, b"{}"))
         assert proto.parse_done(s.expect(proto.DONE)) == (0, ms)  # at work at 0, due at 1 ms
         s.send(proto.grant(ms) + proto.jump(1, ms, 0))
 

@@ -10,8 +10,10 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import re
 import signal
 import socket
+import struct
 import subprocess
 import threading
 from collections.abc import Callable
@@ -78,9 +80,13 @@ def test_a_killed_participant_aborts_the_simulation_naming_it(tmp_path: Path) ->
     with pytest.raises(evclock.remote.ParticipantLostError) as caught:
         evclock.run(main())
     assert caught.value.name == "victim"
-    assert str(caught.value).startswith(
-        "participant 'victim' (lockstep) closed its connection without leaving (killed or "
-        "crashed) at 0.010000 s of sim time; the simulation was aborted (on_fault='abort'"
+    assert re.fullmatch(
+        rf"participant 'victim' \(lockstep, pid {victim.pid}\) closed its connection without "
+        r"leaving \(killed or crashed\) at 0\.010000 s of sim time \(it was last granted "
+        r"0\.010000 s of sim time and had not answered for [0-9.]+ s of wall time\); the "
+        r"simulation was aborted \(on_fault='abort'; 'drop' continues without it, 'pause' "
+        r"waits for it\)",
+        str(caught.value),
     )
     reap(victim)
 
@@ -98,8 +104,10 @@ def test_a_stopped_participant_hits_the_step_timeout(tmp_path: Path) -> None:
     try:
         with pytest.raises(
             evclock.remote.ParticipantLostError,
-            match=r"participant 'frozen' \(lockstep\) did not finish its step within "
-            r"step_timeout=0\.5 s of wall time \(stopped or stuck\) at 0\.010000 s",
+            match=rf"participant 'frozen' \(lockstep, pid {victim.pid}\) did not finish its "
+            r"step within step_timeout=0\.5 s of wall time \(stopped or stuck\) at 0\.010000 s "
+            r"of sim time \(it was last granted 0\.010000 s of sim time and had not answered "
+            r"for 0\.[5-9][0-9]* s of wall time\)",
         ):
             evclock.run(main())
     finally:
@@ -268,6 +276,11 @@ def test_duplicate_names_are_refused_and_the_server_keeps_running(tmp_path: Path
     assert out.split() == ["start", "0", "end", "5000000"]
 
 
+#: A HELLO of protocol version 2 (which carried its token in clear, here empty).
+_V2_PAYLOAD = b"EVCLK" + struct.pack("<HB", 2, proto.MODE_LOCKSTEP) + b"\x03old" + b"\x00\x00"
+V2_HELLO = struct.pack("<IB", len(_V2_PAYLOAD) + 1, proto.HELLO) + _V2_PAYLOAD
+
+
 def raw_exchange(address: str, payload: bytes) -> bytes:
     """Send ``payload`` on a fresh connection; everything the server answers until it closes."""
     path = address.removeprefix("unix://")
@@ -285,14 +298,20 @@ def raw_exchange(address: str, payload: bytes) -> bytes:
     ("payload", "reason"),
     [
         (
-            proto.hello(proto.MODE_LOCKSTEP, "old", None, version=99),
-            "protocol version 99 is not supported: this clock server speaks version 2; run the "
+            proto.hello(proto.MODE_LOCKSTEP, "old", bytes(32), version=99),
+            "protocol version 99 is not supported: this clock server speaks version 3; run the "
+            "same evclock version on both sides",
+        ),
+        (  # a participant of evclock's previous protocol (its token in clear)
+            V2_HELLO,
+            "protocol version 2 is not supported: this clock server speaks version 3; run the "
             "same evclock version on both sides",
         ),
         (
             b"GET / HTTP/1.1\r\nHost: x\r\n\r\n",
-            "not an evclock clock client: bad frame length 542393671 (not an evclock clock "
-            "peer, or a corrupted stream)",
+            "not an evclock clock client: bad frame length 542393671: the limit of this "
+            "connection is 4096 bytes (not an evclock clock peer, a frame too large for the "
+            "server's max_frame, or a corrupted stream)",
         ),
         (
             proto.grant(5),
@@ -319,7 +338,7 @@ def test_bad_clients_are_refused_and_the_server_keeps_serving(
 
     answer = evclock.run(main())
     frames = proto.Reader().feed(answer)
-    assert frames == [(proto.REFUSE, reason.encode())]
+    assert frames == [(proto.REFUSE, bytes((proto.REFUSE_FINAL,)) + reason.encode())]
 
 
 def test_a_connection_that_never_greets_is_closed(
@@ -333,7 +352,9 @@ def test_a_connection_that_never_greets_is_closed(
         async with evclock.remote.serve(url) as server:
             return await loop.run_in_executor(None, raw_exchange, server.address, b"")
 
-    assert proto.Reader().feed(evclock.run(main())) == [(proto.REFUSE, b"no HELLO within 0.3 s")]
+    assert proto.Reader().feed(evclock.run(main())) == [
+        (proto.REFUSE, b"\x00no complete handshake within 0.3 s")
+    ]
 
 
 def test_waiting_for_participants_that_never_come_is_bounded(tmp_path: Path) -> None:
