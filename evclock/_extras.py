@@ -11,6 +11,7 @@ from evclock._errors import MissingExtraError
 EXTRA_OF_MODULE = {
     "pybullet": "pybullet",
     "pybullet_data": "pybullet",
+    "mujoco": "mujoco",
     "starlette": "dashboard",
     "uvicorn": "dashboard",
     "PIL": "dashboard",

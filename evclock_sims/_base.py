@@ -1,9 +1,12 @@
-"""Shared scaffolding for the PyBullet scenarios: the clock interface and the Scenario base class.
+"""Shared scaffolding for the scenarios: the clock interface and the Scenario base class.
 
-A scenario loads its world into an already-connected PyBullet client and runs its controllers as
-asyncio coroutines against a :class:`ClockLike`.  Controllers never step the physics: whoever owns
-the clock calls ``stepSimulation`` once per 1/240 s of simulated time, and controllers only read
-state and write motor commands between steps.
+A scenario loads its world into an already-connected PyBullet client - or, for the scenarios
+that also run on MuJoCo (``engines`` names ``"mujoco"``), into a
+:class:`~evclock_sims._mujoco.MuJoCoWorld` - and runs its controllers as asyncio coroutines
+against a :class:`ClockLike`.  Controllers never step the physics: whoever owns the clock steps
+it once per 1/240 s of simulated time, and controllers only read state and write motor commands
+between steps.  Only the engine-facing code of a scenario differs between engines; its
+controllers are the same.
 """
 
 from __future__ import annotations
@@ -19,10 +22,26 @@ import numpy as np
 
 from evclock._extras import import_extra
 
-# The first scenario module imported (every other one imports this one): a missing PyBullet
-# fails here, naming the extra that installs it.
-p = import_extra("pybullet", "pybullet", needed_by="evclock_sims (the bundled scenarios)")
-pybullet_data = import_extra("pybullet_data", "pybullet", needed_by="evclock_sims")
+from ._mujoco import MuJoCoWorld
+
+ENGINES = ("pybullet", "mujoco")
+"""The physics engines a scenario can run on; PyBullet is the default."""
+
+
+def pybullet() -> Any:
+    """The ``pybullet`` module; a missing PyBullet fails naming the extra that installs it."""
+    return import_extra("pybullet", "pybullet", needed_by="evclock_sims (the bundled scenarios)")
+
+
+def __getattr__(name: str) -> Any:
+    # ``p`` and ``pybullet_data`` were module attributes (imported eagerly) before the
+    # scenarios ran on MuJoCo too: now they are imported on first use.
+    if name == "p":
+        return pybullet()
+    if name == "pybullet_data":
+        return import_extra("pybullet_data", "pybullet", needed_by="evclock_sims")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 PHYSICS_HZ = 240
 """Physics rate of every scenario: one ``stepSimulation`` per 1/240 s of simulated time."""
@@ -88,7 +107,8 @@ class ClockLike(Protocol):
 
 def data_path(relative: str) -> str:
     """The absolute path of a file shipped in ``pybullet_data``."""
-    return str(Path(pybullet_data.getDataPath()) / relative)
+    data = import_extra("pybullet_data", "pybullet", needed_by="evclock_sims")
+    return str(Path(data.getDataPath()) / relative)
 
 
 def wrap_angle(angle: float) -> float:
@@ -97,10 +117,12 @@ def wrap_angle(angle: float) -> float:
 
 
 class Scenario(abc.ABC):
-    """A PyBullet world plus an asyncio controller stack that drives it toward a mission.
+    """A physics world plus an asyncio controller stack that drives it toward a mission.
 
     Subclasses call ``super().__init__`` first (which prepares the client and the seeded random
-    generator ``self.rng``), then load their bodies.  :meth:`run` starts the subclass's
+    generator ``self.rng``), then load their bodies.  ``world`` is a connected PyBullet client
+    id, or a :class:`~evclock_sims._mujoco.MuJoCoWorld` for a scenario whose :attr:`engines`
+    include ``"mujoco"``; :attr:`engine` says which.  :meth:`run` starts the subclass's
     :meth:`_services` (background rate loops) and its :meth:`_mission` concurrently in one
     ``asyncio.TaskGroup``; when the mission returns, the services are cancelled and ``run``
     returns.  The mission decides success; :meth:`success` and :meth:`summary` report it.
@@ -110,25 +132,64 @@ class Scenario(abc.ABC):
     description: ClassVar[str]
     default_until: ClassVar[float]
     """Simulated seconds the scenario needs to finish its mission (with margin)."""
+    engines: ClassVar[tuple[str, ...]] = ("pybullet",)
+    """The physics engines the scenario can run on (see :data:`ENGINES`)."""
 
-    def __init__(self, client: int, seed: int = 0) -> None:
-        """Prepare the already-connected PyBullet ``client``: gravity, 1/240 s steps, the RNG."""
-        self.client = client
+    def __init__(self, world: int | MuJoCoWorld, seed: int = 0) -> None:
+        """Prepare the world - a connected PyBullet client id (gravity, 1/240 s steps) or an
+        empty :class:`MuJoCoWorld` - and the RNG."""
         self.seed = seed
         self.rng = np.random.default_rng(seed)
         self.finished_at: float | None = None
         """Simulated seconds at which the mission ended, or None while it has not."""
-        self.pb: Any = p
+        self.world: MuJoCoWorld | None = None
+        """The MuJoCo world, on MuJoCo (None on PyBullet)."""
+        self.pb: Any = None
         """The PyBullet API the controllers call: the ``pybullet`` module, or a stand-in that
         forwards the calls to the simulation process when the controllers run in another one
-        (``evclock control``). World building and :meth:`state_vector` always use ``p``."""
-        p.setGravity(0.0, 0.0, GRAVITY, physicsClientId=client)
-        p.setTimeStep(1.0 / PHYSICS_HZ, physicsClientId=client)
+        (``evclock control``). World building and :meth:`state_vector` always use ``p``.
+        None on MuJoCo."""
+        if isinstance(world, MuJoCoWorld):
+            if "mujoco" not in self.engines:
+                raise TypeError(
+                    f"scenario {self.name!r} runs on {', '.join(self.engines)} only, not on "
+                    "MuJoCo: run it with --engine pybullet"
+                )
+            self.engine = "mujoco"
+            self.client: Any = None
+            self.world = world
+            return
+        if isinstance(world, bool) or not isinstance(world, int):
+            raise TypeError(
+                "a scenario is built in a connected PyBullet client (an int id) or a "
+                f"MuJoCoWorld, got {type(world).__name__}"
+            )
+        p = pybullet()
+        self.engine = "pybullet"
+        """The engine the scenario runs on: ``"pybullet"`` or ``"mujoco"``."""
+        self.client = world
+        """The PyBullet client id (None on MuJoCo)."""
+        self.pb = p
+        p.setGravity(0.0, 0.0, GRAVITY, physicsClientId=world)
+        p.setTimeStep(1.0 / PHYSICS_HZ, physicsClientId=world)
 
     def load_urdf(self, relative: str, **kwargs: Any) -> int:
-        """Load a ``pybullet_data`` URDF into this scenario's client and return its body id."""
-        body: int = p.loadURDF(data_path(relative), physicsClientId=self.client, **kwargs)
+        """Load a ``pybullet_data`` URDF into this scenario's PyBullet client; its body id."""
+        body: int = pybullet().loadURDF(data_path(relative), physicsClientId=self.client, **kwargs)
         return body
+
+    def before_step(self) -> None:
+        """Called before every physics step, when a subclass overrides it (``evclock run``
+        registers it as a step hook of the time source; in ``--wall`` mode the world task
+        calls it).  The place for what must be repeated every step - PyBullet clears the
+        forces of ``applyExternalForce`` after each step - applied through the world
+        (``p``), not ``self.pb``.  The clock reads the time of the step about to be taken."""
+        return None  # nothing by default (and no hook registered)
+
+    def after_step(self) -> None:
+        """Called after every physics step, when a subclass overrides it (see
+        :meth:`before_step`); the clock reads the time of the step just taken."""
+        return None  # nothing by default (and no hook registered)
 
     async def run(self, clock: ClockLike) -> None:
         """Run the controller stack until the mission is over (success or failure)."""
@@ -171,9 +232,13 @@ class Scenario(abc.ABC):
     def state_vector(self) -> list[float]:
         """The full physical state of every body, for bit-exact determinism comparisons.
 
-        Per body (in body-id order): base position, orientation quaternion, linear and angular
-        velocity, then every joint's position and velocity.
+        On PyBullet, per body (in body-id order): base position, orientation quaternion, linear
+        and angular velocity, then every joint's position and velocity.  On MuJoCo: every joint
+        position, then every velocity, then actuator activations.
         """
+        if self.world is not None:
+            return self.world.state_vector()
+        p = pybullet()
         state: list[float] = []
         cid = self.client
         for i in range(p.getNumBodies(physicsClientId=cid)):

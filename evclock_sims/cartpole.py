@@ -7,21 +7,25 @@ Two concurrent controllers:
   :attr:`CartPole.hold_time` seconds, or early if the pole passes :attr:`CartPole.fail_angle`.
 * ``monitor`` (240 Hz, every physics step): records the largest pole angle and cart excursion.
 
-The gains come from PyBullet's own model: mass matrix and gravity terms of the URDF, linearised
+The gains come from the engine's own model: mass matrix and gravity terms of the URDF, linearised
 at upright by finite differences, discretised with a zero-order hold and fed to the discrete
 Riccati iteration (numpy only).
+
+The controllers and the linearisation are the same on both engines; only the cart's interface
+differs (:class:`PyBulletCart`, :class:`MuJoCoCart`: loading, mass matrix, gravity forces,
+joint states, and the force on the cart).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Coroutine
+from collections.abc import Coroutine, Sequence
 from typing import Any
 
 import numpy as np
-import pybullet as p
 
-from ._base import ClockLike, Metric, Scenario
+from ._base import ClockLike, Metric, Scenario, pybullet
+from ._mujoco import MuJoCoWorld
 
 SLIDER = 0
 """``slider_to_cart``, prismatic along x."""
@@ -30,6 +34,123 @@ POLE = 1
 
 SATURATED_VELOCITY = 1e6
 """A velocity no motor reaches: a velocity motor aimed at it always pushes with its force limit."""
+
+JOINT_NAMES = ("slider_to_cart", "cart_to_pole")
+
+
+class PyBulletCart:
+    """The cart-pole on PyBullet: both joints freed, the cart pushed by a saturated velocity
+    motor (calls go through ``scenario.pb``, see :class:`~evclock_sims.kuka.PyBulletArm`)."""
+
+    def __init__(self, scenario: CartPole) -> None:
+        p = pybullet()
+        self._p = p
+        self.scenario = scenario
+        self.robot = scenario.load_urdf("cartpole.urdf", useFixedBase=True)
+        p.setJointMotorControlArray(
+            self.robot,
+            [SLIDER, POLE],
+            p.VELOCITY_CONTROL,
+            forces=[0.0, 0.0],
+            physicsClientId=scenario.client,
+        )
+
+    def mass_matrix(self, q: Sequence[float]) -> np.ndarray:
+        """The joint-space mass matrix at positions ``q``."""
+        p = self._p
+        cid = self.scenario.client
+        return np.array(p.calculateMassMatrix(self.robot, list(q), physicsClientId=cid))
+
+    def gravity_forces(self, q: Sequence[float]) -> np.ndarray:
+        """Generalized gravity forces at positions ``q``: inverse dynamics at rest."""
+        rest = [0.0] * len(q)
+        forces = self._p.calculateInverseDynamics(
+            self.robot, list(q), rest, rest, physicsClientId=self.scenario.client
+        )
+        return np.array(forces)
+
+    def tilt(self, angle: float) -> None:
+        """Set the pole's angle (radians, at rest)."""
+        self._p.resetJointState(self.robot, POLE, angle, physicsClientId=self.scenario.client)
+
+    def joint_states(self) -> tuple[float, float, float, float]:
+        """Cart position, pole angle, cart velocity, pole rate."""
+        scenario = self.scenario
+        cart, pole = scenario.pb.getJointStates(
+            self.robot, [SLIDER, POLE], physicsClientId=scenario.client
+        )
+        return cart[0], pole[0], cart[1], pole[1]
+
+    def push(self, force: float) -> None:
+        """Push the cart with ``force`` newtons until the next command.
+
+        ``TORQUE_CONTROL`` would only act during the next ``stepSimulation`` (PyBullet clears it
+        after every step), but the balance loop runs once per ~4.8 steps.  A velocity motor
+        aimed at an unreachable velocity with force limit ``|force|`` applies exactly that
+        force on every step until replaced: a zero-order hold.
+        """
+        scenario = self.scenario
+        scenario.pb.setJointMotorControl2(
+            self.robot,
+            SLIDER,
+            self._p.VELOCITY_CONTROL,
+            targetVelocity=math.copysign(SATURATED_VELOCITY, force),
+            force=abs(force),
+            physicsClientId=scenario.client,
+        )
+
+
+class MuJoCoCart:
+    """The cart-pole on MuJoCo: free joints, a force motor on the slider (its ``ctrl`` is
+    the force, held until changed: a zero-order hold). The model's mass matrix and gravity
+    terms are read on a scratch ``MjData``, never on the simulated one."""
+
+    def __init__(self, scenario: CartPole, world: MuJoCoWorld) -> None:
+        self.world = world
+        world.load_urdf("cartpole.urdf", motor_joints=[JOINT_NAMES[SLIDER]])
+        self._mj = world.mj
+        self._qpos = [world.joint_index(name)[0] for name in JOINT_NAMES]
+        self._dofs = [world.joint_index(name)[1] for name in JOINT_NAMES]
+        self._scratch = world.mj.MjData(world.model)
+
+    def _at(self, q: Sequence[float]) -> Any:
+        scratch = self._scratch
+        scratch.qpos[self._qpos] = q
+        scratch.qvel[:] = 0.0
+        self._mj.mj_forward(self.world.model, scratch)
+        return scratch
+
+    def mass_matrix(self, q: Sequence[float]) -> np.ndarray:
+        """The joint-space mass matrix at positions ``q``."""
+        model = self.world.model
+        full = np.zeros((model.nv, model.nv))
+        self._mj.mj_fullM(model, self._at(q), full)
+        return full[np.ix_(self._dofs, self._dofs)]
+
+    def gravity_forces(self, q: Sequence[float]) -> np.ndarray:
+        """Generalized gravity forces at positions ``q`` (the bias forces at rest)."""
+        return np.array(self._at(q).qfrc_bias[self._dofs])
+
+    def tilt(self, angle: float) -> None:
+        """Set the pole's angle (radians, at rest)."""
+        self.world.data.qpos[self._qpos[POLE]] = angle
+        self.world.forward()
+
+    def joint_states(self) -> tuple[float, float, float, float]:
+        """Cart position, pole angle, cart velocity, pole rate."""
+        data = self.world.data
+        cart, pole = self._qpos
+        cart_v, pole_v = self._dofs
+        return (
+            float(data.qpos[cart]),
+            float(data.qpos[pole]),
+            float(data.qvel[cart_v]),
+            float(data.qvel[pole_v]),
+        )
+
+    def push(self, force: float) -> None:
+        """Push the cart with ``force`` newtons until the next command."""
+        self.world.data.ctrl[0] = force
 
 
 def _expm(matrix: np.ndarray) -> np.ndarray:
@@ -88,18 +209,20 @@ class CartPole(Scenario):
     state_cost = (1.0, 10.0, 0.1, 0.1)
     """LQR weights on cart position, pole angle, cart velocity, pole rate."""
     force_cost = 0.1
+    engines = ("pybullet", "mujoco")
 
-    def __init__(self, client: int, seed: int = 0) -> None:
-        """Load the cart-pole, free both joints, tilt the pole by a seeded 2-6 degrees."""
-        super().__init__(client, seed)
-        self.robot = self.load_urdf("cartpole.urdf", useFixedBase=True)
-        p.setJointMotorControlArray(
-            self.robot,
-            [SLIDER, POLE],
-            p.VELOCITY_CONTROL,
-            forces=[0.0, 0.0],
-            physicsClientId=client,
-        )
+    def __init__(self, world: int | MuJoCoWorld, seed: int = 0) -> None:
+        """Load the cart-pole (in a PyBullet client or a MuJoCo world), free both joints, tilt
+        the pole by a seeded 2-6 degrees."""
+        super().__init__(world, seed)
+        self.cart: PyBulletCart | MuJoCoCart
+        """The engine-facing part: loading, model terms, joint states, the cart's force."""
+        if isinstance(world, MuJoCoWorld):
+            self.cart = MuJoCoCart(self, world)
+            self.robot = -1
+        else:
+            self.cart = PyBulletCart(self)
+            self.robot = self.cart.robot
         self.gain = discrete_lqr(
             *self._linearise(),
             np.diag(self.state_cost),
@@ -107,7 +230,7 @@ class CartPole(Scenario):
             1.0 / self.balance_hz,
         )
         tilt = math.radians(float(self.rng.uniform(2.0, 6.0))) * float(self.rng.choice([-1, 1]))
-        p.resetJointState(self.robot, POLE, tilt, physicsClientId=client)
+        self.cart.tilt(tilt)
         self.initial_tilt = tilt
         self.max_angle = abs(tilt)
         self.max_cart_offset = 0.0
@@ -115,19 +238,15 @@ class CartPole(Scenario):
         """Seconds the balance loop has kept the pole up."""
 
     def _linearise(self) -> tuple[np.ndarray, np.ndarray]:
-        """Continuous ``(A, B)`` at upright rest from PyBullet's mass matrix and gravity terms."""
-        cid = self.client
+        """Continuous ``(A, B)`` at upright rest from the engine's mass matrix and gravity."""
         upright = [0.0, 0.0]
-        mass = np.array(p.calculateMassMatrix(self.robot, upright, physicsClientId=cid))
+        mass = self.cart.mass_matrix(upright)
 
         def gravity(joint: int, offset: float) -> np.ndarray:
-            """Generalized gravity forces with ``joint`` displaced: inverse dynamics at rest."""
+            """Generalized gravity forces with ``joint`` displaced."""
             q = list(upright)
             q[joint] += offset
-            forces = p.calculateInverseDynamics(
-                self.robot, q, upright, upright, physicsClientId=cid
-            )
-            return np.array(forces)
+            return self.cart.gravity_forces(q)
 
         eps = 1e-6
         stiffness = np.zeros((2, 2))
@@ -142,8 +261,7 @@ class CartPole(Scenario):
 
     def _joint_states(self) -> tuple[float, float, float, float]:
         """Cart position, pole angle, cart velocity, pole rate."""
-        cart, pole = self.pb.getJointStates(self.robot, [SLIDER, POLE], physicsClientId=self.client)
-        return cart[0], pole[0], cart[1], pole[1]
+        return self.cart.joint_states()
 
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
         return {"monitor": self._monitor(clock)}
@@ -169,21 +287,8 @@ class CartPole(Scenario):
             self._apply_force(force)
 
     def _apply_force(self, force: float) -> None:
-        """Push the cart with ``force`` newtons until the next command.
-
-        ``TORQUE_CONTROL`` would only act during the next ``stepSimulation`` (PyBullet clears it
-        after every step), but this loop runs once per ~4.8 steps.  A velocity motor aimed at an
-        unreachable velocity with force limit ``|force|`` applies exactly that force on every
-        step until replaced: a zero-order hold.
-        """
-        self.pb.setJointMotorControl2(
-            self.robot,
-            SLIDER,
-            p.VELOCITY_CONTROL,
-            targetVelocity=math.copysign(SATURATED_VELOCITY, force),
-            force=abs(force),
-            physicsClientId=self.client,
-        )
+        """Push the cart with ``force`` newtons until the next command (a zero-order hold)."""
+        self.cart.push(force)
 
     def success(self) -> bool:
         """The pole stayed within :attr:`fail_angle` for :attr:`hold_time` seconds."""

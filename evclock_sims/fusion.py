@@ -26,12 +26,14 @@ from dataclasses import dataclass
 from typing import Any, cast
 
 import numpy as np
-import pybullet as p
 
 import evclock
 
-from ._base import ClockLike, Metric, Scenario, TimeLike
+from ._base import ClockLike, Metric, Scenario, TimeLike, pybullet
 from .husky import LEFT_WHEELS, RIGHT_WHEELS, TRACK, WHEEL_RADIUS
+
+# PyBullet only: importing this module without PyBullet fails naming the extra.
+p = pybullet()
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,11 @@ from collections.abc import Coroutine
 from typing import Any
 
 import numpy as np
-import pybullet as p
 
-from ._base import ClockLike, Metric, Scenario, wrap_angle
+from ._base import ClockLike, Metric, Scenario, pybullet, wrap_angle
+
+# PyBullet only: importing this module without PyBullet fails naming the extra.
+p = pybullet()
 
 LEFT_WHEELS = (2, 4)
 """``front_left_wheel``, ``rear_left_wheel`` (joints 0, 1, 6-9 are fixed)."""

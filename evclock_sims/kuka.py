@@ -7,17 +7,23 @@ Two concurrent controllers:
   :attr:`KukaReach.dwell` seconds.
 * ``joint_control`` (100 Hz by default, ``control_hz``): slews the commanded joint positions toward
   the IK solution at a bounded joint speed and sends them as position-control targets.
+
+The controllers are the same on both engines; only the arm's interface differs
+(:class:`PyBulletArm`: ``POSITION_CONTROL`` motors and PyBullet's IK; :class:`MuJoCoArm`:
+position actuators from :func:`~evclock_sims._mujoco.urdf_to_mujoco`, with gravity
+compensation, and a damped-least-squares IK with the same null-space preference).
 """
 
 from __future__ import annotations
 
-from collections.abc import Coroutine
+import math
+from collections.abc import Coroutine, Sequence
 from typing import Any
 
 import numpy as np
-import pybullet as p
 
-from ._base import ClockLike, Metric, Scenario
+from ._base import ClockLike, Metric, Scenario, pybullet
+from ._mujoco import MuJoCoWorld
 
 END_EFFECTOR_LINK = 6
 """``lbr_iiwa_link_7``, the flange."""
@@ -36,6 +42,171 @@ CANDIDATE_TARGETS = (
     (0.50, 0.30, 0.60),
 )
 """Reachable flange positions (metres, world frame); each run picks a seeded subset."""
+
+JOINT_NAMES = tuple(f"lbr_iiwa_joint_{i}" for i in range(1, 8))
+FLANGE_BODY = "lbr_iiwa_link_7"
+FLANGE_DOWN = (math.pi, 0.0, 0.0)
+"""The flange's orientation at every target: roll pi (pointing down), as Euler angles."""
+
+MUJOCO_SERVO = {"kp": 2000.0, "kv": 100.0, "armature": 0.1}
+"""The MuJoCo arm's position servos: gains (N m/rad, N m s/rad) and joint armature (kg m^2)."""
+
+
+class PyBulletArm:
+    """The KUKA on PyBullet: ``POSITION_CONTROL`` motors and ``calculateInverseKinematics``.
+
+    Calls go through ``scenario.pb`` (the ``pybullet`` module, or the stand-in of
+    ``evclock control`` that forwards them to the simulation process).
+    """
+
+    def __init__(self, scenario: KukaReach) -> None:
+        p = pybullet()
+        self._p = p
+        self.scenario = scenario
+        client = scenario.client
+        self.robot = scenario.load_urdf("kuka_iiwa/model.urdf", useFixedBase=True)
+        self.joints = list(range(p.getNumJoints(self.robot, physicsClientId=client)))
+        infos = [p.getJointInfo(self.robot, j, physicsClientId=client) for j in self.joints]
+        self.lower = [info[8] for info in infos]
+        self.upper = [info[9] for info in infos]
+        for joint, angle in zip(self.joints, REST_POSE, strict=True):
+            p.resetJointState(self.robot, joint, angle, physicsClientId=client)
+        self.orientation = p.getQuaternionFromEuler(FLANGE_DOWN)
+        self.forces = [scenario.max_joint_torque] * len(self.joints)
+
+    def flange_position(self) -> np.ndarray:
+        """World position of the flange link frame."""
+        scenario = self.scenario
+        link = scenario.pb.getLinkState(
+            self.robot,
+            END_EFFECTOR_LINK,
+            computeForwardKinematics=True,
+            physicsClientId=scenario.client,
+        )
+        return np.array(link[4])
+
+    def command(self, positions: Sequence[float]) -> None:
+        """Send joint position targets (radians), each motor limited to the maximum torque."""
+        scenario = self.scenario
+        scenario.pb.setJointMotorControlArray(
+            self.robot,
+            self.joints,
+            self._p.POSITION_CONTROL,
+            targetPositions=list(positions),
+            forces=self.forces,
+            physicsClientId=scenario.client,
+        )
+
+    def inverse_kinematics(self, target: np.ndarray) -> list[float]:
+        """Joint positions putting the flange at ``target``, pointing down, near the rest pose."""
+        scenario = self.scenario
+        solution: list[float] = scenario.pb.calculateInverseKinematics(
+            self.robot,
+            END_EFFECTOR_LINK,
+            target.tolist(),
+            self.orientation,
+            lowerLimits=self.lower,
+            upperLimits=self.upper,
+            jointRanges=[hi - lo for lo, hi in zip(self.lower, self.upper, strict=True)],
+            restPoses=list(REST_POSE),
+            maxNumIterations=100,
+            residualThreshold=1e-5,
+            physicsClientId=scenario.client,
+        )
+        return solution
+
+
+class MuJoCoArm:
+    """The KUKA on MuJoCo: position actuators (``ctrl`` = target angles) with gravity
+    compensation, and a damped-least-squares IK toward the flange position and orientation
+    with the rest pose as null-space preference (as PyBullet's ``restPoses``).
+
+    Kinematics for the controllers (flange position, IK) run on a scratch ``MjData``: they
+    never touch the simulated data, so they cannot change the trajectory.
+    """
+
+    ik_damping = 1e-4
+    """Damping of the least-squares IK step (the square of the usual lambda)."""
+    ik_null_gain = 0.1
+    """Fraction of the distance to the rest pose taken per IK iteration in the null space."""
+    ik_iterations = 20
+    """Iterations per IK call at most: each call starts from the previous solution (the
+    planner re-solves every tick), so a few usually suffice."""
+
+    def __init__(self, scenario: KukaReach, world: MuJoCoWorld) -> None:
+        self.world = world
+        world.load_urdf(
+            "kuka_iiwa/model.urdf",
+            position_joints=JOINT_NAMES,
+            force_limit=scenario.max_joint_torque,
+            gravity_compensation=True,
+            **MUJOCO_SERVO,
+        )
+        mj, model, data = world.mj, world.model, world.data
+        self._mj = mj
+        self.joints = [world.joint_index(name)[0] for name in JOINT_NAMES]
+        self.lower = [float(model.jnt_range[j][0]) for j in range(len(JOINT_NAMES))]
+        self.upper = [float(model.jnt_range[j][1]) for j in range(len(JOINT_NAMES))]
+        data.qpos[self.joints] = REST_POSE
+        data.ctrl[:] = REST_POSE
+        world.forward()
+        self.flange = world.body_index(FLANGE_BODY)
+        self._scratch = mj.MjData(model)
+        self._down = np.zeros(4)
+        mj.mju_euler2Quat(self._down, np.array(FLANGE_DOWN), "xyz")
+        self._jacp = np.zeros((3, model.nv))
+        self._jacr = np.zeros((3, model.nv))
+        self._last: np.ndarray | None = None
+
+    def _kinematics(self, q: np.ndarray) -> Any:
+        scratch = self._scratch
+        scratch.qpos[self.joints] = q
+        self._mj.mj_kinematics(self.world.model, scratch)
+        return scratch
+
+    def flange_position(self) -> np.ndarray:
+        """World position of the flange link frame."""
+        scratch = self._kinematics(self.world.data.qpos[self.joints])
+        position: np.ndarray = scratch.xpos[self.flange].copy()
+        return position
+
+    def command(self, positions: Sequence[float]) -> None:
+        """Set the position actuators' targets (radians); they hold until the next command."""
+        self.world.data.ctrl[:] = positions
+
+    def inverse_kinematics(self, target: np.ndarray) -> list[float]:
+        """Joint positions putting the flange at ``target``, pointing down, near the rest pose."""
+        mj, model = self._mj, self.world.model
+        # Warm start from the last solution (the arm lags behind it while it slews): a few
+        # iterations then suffice, where starting from the arm's pose takes many.
+        start = self._last if self._last is not None else self.world.data.qpos[self.joints]
+        q = np.array(start, dtype=float)
+        rest = np.array(REST_POSE)
+        lower, upper = np.array(self.lower), np.array(self.upper)
+        error = np.zeros(6)
+        turn, conjugate = np.zeros(4), np.zeros(4)
+        identity = np.eye(len(q))
+        for _ in range(self.ik_iterations):
+            scratch = self._kinematics(q)
+            error[:3] = target - scratch.xpos[self.flange]
+            mj.mju_negQuat(conjugate, scratch.xquat[self.flange])
+            mj.mju_mulQuat(turn, self._down, conjugate)
+            mj.mju_quat2Vel(error[3:], turn, 1.0)
+            if float(np.linalg.norm(error)) < 1e-5:
+                break
+            mj.mj_comPos(model, scratch)
+            mj.mj_jacBody(model, scratch, self._jacp, self._jacr, self.flange)
+            jacobian = np.vstack((self._jacp, self._jacr))[:, self.joints]
+            inverse = jacobian.T @ np.linalg.inv(
+                jacobian @ jacobian.T + self.ik_damping * np.eye(6)
+            )
+            # The exact (undamped) null-space projector: the pull toward the rest pose does
+            # not disturb the task.
+            null = identity - jacobian.T @ np.linalg.solve(jacobian @ jacobian.T, jacobian)
+            q = np.clip(q + inverse @ error + null @ (self.ik_null_gain * (rest - q)), lower, upper)
+        self._last = q
+        solution: list[float] = q.tolist()
+        return solution
 
 
 class KukaReach(Scenario):
@@ -56,19 +227,27 @@ class KukaReach(Scenario):
     """N m: motor force limit, the URDF's effort limit."""
     target_jitter = 0.02
     """Metres: seeded uniform jitter added to each chosen candidate target."""
+    engines = ("pybullet", "mujoco")
 
-    def __init__(self, client: int, seed: int = 0, *, control_hz: float = 100.0) -> None:
-        """Load the arm at :data:`REST_POSE` and choose the targets; ``control_hz`` sets the rate
-        of the joint controller."""
-        super().__init__(client, seed)
+    def __init__(
+        self, world: int | MuJoCoWorld, seed: int = 0, *, control_hz: float = 100.0
+    ) -> None:
+        """Load the arm at :data:`REST_POSE` (in a PyBullet client or a MuJoCo world) and
+        choose the targets; ``control_hz`` sets the rate of the joint controller."""
+        super().__init__(world, seed)
         self.control_hz = control_hz
-        self.robot = self.load_urdf("kuka_iiwa/model.urdf", useFixedBase=True)
-        self.joints = list(range(p.getNumJoints(self.robot, physicsClientId=client)))
-        infos = [p.getJointInfo(self.robot, j, physicsClientId=client) for j in self.joints]
-        self.lower = [info[8] for info in infos]
-        self.upper = [info[9] for info in infos]
-        for joint, angle in zip(self.joints, REST_POSE, strict=True):
-            p.resetJointState(self.robot, joint, angle, physicsClientId=client)
+        self.arm: PyBulletArm | MuJoCoArm
+        """The engine-facing part: the arm's sensors, motors and IK."""
+        if isinstance(world, MuJoCoWorld):
+            self.arm = MuJoCoArm(self, world)
+            self.robot = -1
+        else:
+            self.arm = PyBulletArm(self)
+            self.robot = self.arm.robot
+            self.orientation = self.arm.orientation
+        self.joints = self.arm.joints
+        self.lower = self.arm.lower
+        self.upper = self.arm.upper
 
         count = int(self.rng.integers(3, 5))
         chosen = self.rng.choice(len(CANDIDATE_TARGETS), size=count, replace=False)
@@ -76,7 +255,6 @@ class KukaReach(Scenario):
         self.targets = [
             np.array(CANDIDATE_TARGETS[i]) + d for i, d in zip(chosen, jitter, strict=True)
         ]
-        self.orientation = p.getQuaternionFromEuler([np.pi, 0.0, 0.0])
         self.reached_at: list[float] = []
         self.goal = np.array(REST_POSE)
         """Joint positions the planner asks for (latest IK solution)."""
@@ -84,13 +262,7 @@ class KukaReach(Scenario):
 
     def flange_position(self) -> np.ndarray:
         """World position of the flange link frame."""
-        link = self.pb.getLinkState(
-            self.robot,
-            END_EFFECTOR_LINK,
-            computeForwardKinematics=True,
-            physicsClientId=self.client,
-        )
-        return np.array(link[4])
+        return self.arm.flange_position()
 
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
         return {"joint_control": self._joint_control(clock)}
@@ -99,17 +271,9 @@ class KukaReach(Scenario):
         """Slew the position command toward :attr:`goal` and send it every tick."""
         command = np.array(REST_POSE)
         max_step = self.max_joint_speed / self.control_hz
-        forces = [self.max_joint_torque] * len(self.joints)
         async for _tick in clock.rate(self.control_hz, name="joint_control"):
             command += np.clip(self.goal - command, -max_step, max_step)
-            self.pb.setJointMotorControlArray(
-                self.robot,
-                self.joints,
-                p.POSITION_CONTROL,
-                targetPositions=command.tolist(),
-                forces=forces,
-                physicsClientId=self.client,
-            )
+            self.arm.command(command.tolist())
 
     async def _mission(self, clock: ClockLike) -> None:
         """Plan toward each target in turn; return once the last one is reached."""
@@ -134,20 +298,7 @@ class KukaReach(Scenario):
 
     def _inverse_kinematics(self, target: np.ndarray) -> list[float]:
         """Joint positions putting the flange at ``target``, pointing down, near the rest pose."""
-        solution: list[float] = self.pb.calculateInverseKinematics(
-            self.robot,
-            END_EFFECTOR_LINK,
-            target.tolist(),
-            self.orientation,
-            lowerLimits=self.lower,
-            upperLimits=self.upper,
-            jointRanges=[hi - lo for lo, hi in zip(self.lower, self.upper, strict=True)],
-            restPoses=list(REST_POSE),
-            maxNumIterations=100,
-            residualThreshold=1e-5,
-            physicsClientId=self.client,
-        )
-        return solution
+        return self.arm.inverse_kinematics(target)
 
     def success(self) -> bool:
         """All targets were reached."""

@@ -9,6 +9,11 @@ registered the same way), so ``evclock run NAME`` and ``evclock list`` find them
 Tunable parameters are the scenario class's public scalar class attributes (``bool``, ``int``,
 ``float``, ``str``); :func:`configure` returns a subclass with some of them overridden, which is
 what ``--param name=value`` runs.
+
+Engines: a scenario runs on PyBullet (the default) and, when its class attribute ``engines``
+names ``"mujoco"``, on MuJoCo (``evclock run kuka --engine mujoco``). :func:`open_world` builds
+the time source of the chosen engine and the scenario's world in it; only the scenario's
+engine-facing code differs, its controllers are the same.
 """
 
 from __future__ import annotations
@@ -20,10 +25,22 @@ import importlib.util
 import math
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from evclock._errors import EvClockError, InvalidArgumentError, InvalidTypeError, ScenarioError
+from evclock._errors import (
+    EvClockError,
+    InvalidArgumentError,
+    InvalidTypeError,
+    MissingExtraError,
+    ScenarioError,
+)
 from evclock._extras import extra_for
+
+if TYPE_CHECKING:
+    from evclock.sources._stepping import SteppingTimeSource
+
+ENGINES = ("pybullet", "mujoco")
+"""The physics engines ``--engine`` chooses from; the first is the default."""
 
 ENTRY_POINT_GROUP = "evclock.scenarios"
 """The entry-point group packages register their scenario classes in."""
@@ -298,3 +315,111 @@ def configure(cls: type[Any], params: dict[str, ParamValue]) -> type[Any]:
                 f"parameter {key} of {cls.name!r} is a {type(tunable[key]).__name__}, got {value!r}"
             )
     return type(cls.__name__, (cls,), {"__module__": cls.__module__, **params})
+
+
+def engines_of(cls: type[Any]) -> tuple[str, ...]:
+    """The engines scenario class ``cls`` runs on: its ``engines`` attribute, else PyBullet.
+
+    :param cls: a scenario class.
+    :returns: engine names, from :data:`ENGINES`.
+    """
+    engines = getattr(cls, "engines", ("pybullet",))
+    return tuple(engines)
+
+
+def check_engine(cls: type[Any], engine: str) -> None:
+    """Check that scenario class ``cls`` runs on ``engine``.
+
+    :param cls: a scenario class.
+    :param engine: ``"pybullet"`` or ``"mujoco"``.
+    :raises InvalidTypeError: ``engine`` is not a string.
+    :raises InvalidArgumentError: an unknown engine, or one the scenario does not run on.
+    """
+    if not isinstance(engine, str):
+        raise InvalidTypeError(f"engine must be a string, got {type(engine).__name__}")
+    if engine not in ENGINES:
+        raise InvalidArgumentError(
+            f"unknown engine {engine!r}; valid engines: {', '.join(ENGINES)}"
+        )
+    supported = engines_of(cls)
+    if engine not in supported:
+        raise InvalidArgumentError(
+            f"scenario {cls.name!r} runs on {' and '.join(supported)} only, not on {engine}: "
+            f"drop --engine {engine}"
+        )
+
+
+def open_engine(
+    cls: type[Any], engine: str = "pybullet", *, gui: bool = False
+) -> tuple[SteppingTimeSource[Any] | None, Any]:
+    """The world scenario class ``cls`` is built in on ``engine``, and its time source when it
+    exists before the world is built.
+
+    On PyBullet: a :class:`~evclock.sources.PyBulletTimeSource` with a new DIRECT (or GUI)
+    client, and that client's id as the world. On MuJoCo: no source yet (MuJoCo compiles a
+    whole model at once) and an empty ``evclock_sims.MuJoCoWorld``; build the scenario in it
+    (``cls(world, seed)``), then take ``world.time_source()``. :func:`open_world` does both.
+
+    :param cls: a scenario class (see :func:`load_scenario`).
+    :param engine: ``"pybullet"`` (default) or ``"mujoco"``.
+    :param gui: open PyBullet's GUI (PyBullet only).
+    :returns: ``(source or None, world)``.
+    :raises InvalidArgumentError: an unknown or unsupported engine, or ``gui`` on MuJoCo.
+    :raises MissingExtraError: the engine is not installed; the message names its extra.
+    """
+    check_engine(cls, engine)
+    if engine == "mujoco":
+        if gui:
+            raise InvalidArgumentError(
+                "--gui opens PyBullet's GUI, which MuJoCo runs do not have: drop --gui"
+            )
+        from evclock_sims import MuJoCoWorld
+
+        return None, MuJoCoWorld()
+    from evclock.sources import PyBulletTimeSource
+
+    try:
+        source = PyBulletTimeSource.connect(gui=gui)
+    except MissingExtraError as exc:
+        if "mujoco" not in engines_of(cls):
+            raise
+        error = MissingExtraError(
+            f"scenario {cls.name!r} runs on PyBullet by default, which is not installed: "
+            "pip install 'evclock[pybullet]'; or run it on MuJoCo: --engine mujoco",
+            name="pybullet",
+        )
+        error.extra = "pybullet"
+        raise error from exc
+    return source, source.client
+
+
+def open_world(
+    cls: type[Any], seed: int, *, engine: str = "pybullet", gui: bool = False
+) -> tuple[SteppingTimeSource[Any], Any]:
+    """The time source of ``engine`` and scenario ``cls`` set up in it with ``seed``.
+
+    See :func:`open_engine`. The caller closes the source.
+
+    :param cls: a scenario class (see :func:`load_scenario`).
+    :param seed: the seed the scenario is set up with.
+    :param engine: ``"pybullet"`` (default) or ``"mujoco"``.
+    :param gui: open PyBullet's GUI (PyBullet only).
+    :returns: ``(source, scenario)``.
+    :raises InvalidArgumentError: an unknown or unsupported engine, or ``gui`` on MuJoCo.
+    :raises MissingExtraError: the engine is not installed; the message names its extra.
+
+    Example::
+
+        source, scenario = open_world(load_scenario("kuka"), 0, engine="mujoco")
+    """
+    source, world = open_engine(cls, engine, gui=gui)
+    try:
+        scenario = cls(world, seed)
+        if source is None:
+            source = world.time_source()
+    except BaseException:
+        if source is not None:
+            source.close()
+        raise
+    assert source is not None
+    return source, scenario

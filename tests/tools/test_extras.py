@@ -115,8 +115,11 @@ def test_evclock_run_without_pybullet_exits_2_naming_the_extra() -> None:
     )
     assert result.returncode == 2, result.stderr
     message = " ".join(result.stderr.split())  # evclock's errors go to stderr
-    assert "error: evclock_sims (the bundled scenarios) needs 'pybullet', which is not " in message
-    assert "pip install 'evclock[pybullet]'" in message
+    # kuka also runs on MuJoCo: the error says so.
+    assert message == (
+        "error: scenario 'kuka' runs on PyBullet by default, which is not installed: pip "
+        "install 'evclock[pybullet]'; or run it on MuJoCo: --engine mujoco"
+    )
 
 
 # --- the `evclock` command without its extras: a one-line error (or, for `list`, a note), never
@@ -207,11 +210,14 @@ def test_evclock_list_without_pybullet_lists_every_scenario_and_names_the_extra(
     assert rows["light"] == (
         "│ light │ 1.5 │ no physics [a test scenario] │ evclock-test-scenarios │"
     )
-    for name in ("cartpole", "fusion", "husky", "kuka"):
+    for name in ("fusion", "husky"):
         assert rows[name] == f"│ {name} │ - │ (needs evclock[pybullet]) │ evclock │"
+    for name in ("cartpole", "kuka"):  # they run on MuJoCo too
+        assert rows[name].startswith(f"│ {name} │ ")
+        assert "(needs" not in rows[name]
     assert rows["reach"] == "│ reach │ - │ (needs evclock[pybullet]) │ evclock-test-scenarios │"
     assert one_line(result.stderr) == (
-        "note: cartpole, fusion, husky, kuka cannot run here: evclock_sims (the bundled "
+        "note: fusion, husky cannot run here: evclock_sims (the bundled "
         "scenarios) needs 'pybullet', which is not installed; install it with: pip install "
         "'evclock[pybullet]' "
         "note: reach cannot run here: scenario 'reach' (evclock-test-scenarios) needs "
@@ -237,7 +243,7 @@ def test_evclock_list_reports_a_broken_registration_and_lists_the_others(
     stdout = one_line(result.stdout)
     assert "│ light │ 1.5 │ no physics [a test scenario] │ evclock-test-scenarios │" in stdout
     assert "│ gone │ - │ (broken: see the error below) │ evclock-test-scenarios │" in stdout
-    assert "│ kuka │ - │ (needs evclock[pybullet]) │ evclock │" in stdout
+    assert "│ husky │ - │ (needs evclock[pybullet]) │ evclock │" in stdout
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert errors == [
         "error: scenario 'gone' (no_such_scenario_module:Gone) cannot be loaded: cannot import "
@@ -257,7 +263,7 @@ _BUNDLED = f"error: evclock_sims (the bundled scenarios) {_PYBULLET_ERROR}"
 @pytest.mark.parametrize(
     ("hide", "args", "error"),
     [
-        (("pybullet",), ["run", "kuka", "--quiet"], _BUNDLED),
+        (("pybullet",), ["run", "husky", "--quiet"], _BUNDLED),
         (
             ("pybullet",),
             ["run", "reach_scenario.py"],
@@ -268,13 +274,13 @@ _BUNDLED = f"error: evclock_sims (the bundled scenarios) {_PYBULLET_ERROR}"
             ["run", "reach_scenario:Reach"],
             f"error: 'reach_scenario:Reach' {_PYBULLET_ERROR}",
         ),
-        (("pybullet",), ["sweep", "kuka", "--seeds", "2", "--quiet"], _BUNDLED),
+        (("pybullet",), ["sweep", "husky", "--seeds", "2", "--quiet"], _BUNDLED),
         (
             ("pybullet",),
             ["sweep", "reach_scenario.py:Reach", "--seeds", "2", "--quiet"],
             "error: scenario file '{cwd}/reach_scenario.py' " + _PYBULLET_ERROR,
         ),
-        (("pybullet",), ["control", "kuka", "--clock", "tcp://127.0.0.1:9"], _BUNDLED),
+        (("pybullet",), ["control", "husky", "--clock", "tcp://127.0.0.1:9"], _BUNDLED),
         (
             ("pybullet",),
             ["control", "light_scenario:Light", "--clock", "tcp://127.0.0.1:9"],
