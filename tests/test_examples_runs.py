@@ -45,7 +45,7 @@ def test_sweep_record_plot_example(tmp_path: Path) -> None:
     assert lines[1].startswith("arrival_s median ")
     assert lines[2] == "a vs b: identical"
     assert (
-        lines[3] == "a vs c: first divergence at sim time 0.050000 s on /evclock/state (message 5)"
+        lines[3] == "a vs c: first divergence at sim time 0.050000 s on /evclock/state (message 8)"
     )
     assert lines[4] == "plots: run.png, sweep.png"
     assert {p.name for p in tmp_path.iterdir()} == {

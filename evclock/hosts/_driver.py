@@ -37,7 +37,7 @@ import collections
 import contextlib
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Generator, Iterator
 from types import TracebackType
 from typing import Any, Final
 
@@ -282,6 +282,7 @@ class SimDriver(PacingControls):
         self._error: Exception | None = None
         self._error_reported = False
         self._lockstep_overruns = 0
+        self._step_waiters: list[asyncio.Future[None]] = []
 
     # ------------------------------------------------------------ properties
 
@@ -498,6 +499,43 @@ class SimDriver(PacingControls):
             "to start paused"
         )
 
+    def step(self, count: int = 1) -> Steps:  # type: ignore[override]  # None -> awaitable
+        """While paused, let sim time advance ``count`` increments (physics steps, or jumps to
+        the next deadline on virtual time), then stay paused. Thread-safe.
+
+        Returns a :class:`Steps`: ``await sim.step(5)`` (on the driver's loop) returns once
+        the five steps are taken and the work they woke has settled, so the caller sees the
+        state after them; not awaiting it just requests the steps, as before.
+
+        :param count: how many increments (at least 1).
+        :returns: an awaitable that is done when the steps are taken.
+        :raises InvalidTypeError: ``count`` is not an int.
+        :raises InvalidArgumentError: ``count`` is below 1.
+        :raises PacingError: the driver is not paused.
+        """
+        super().step(count)
+        return Steps(self)
+
+    async def _steps_taken(self) -> None:
+        self._check_loop_thread("await step(n)")
+        if self._state is _STOPPED:
+            raise LoopClosedError(self._stopped_message())
+        pacer = self._core.pacer
+        if not pacer.paused or pacer.waits_for_control():
+            return  # already taken (or resumed meanwhile: the steps are moot)
+        fut = self._new_future()
+        self._step_waiters.append(fut)
+        await fut
+
+    def _steps_settled(self) -> None:
+        """Resolve the ``await step(n)`` waits once the steps are taken (after a settle)."""
+        pacer = self._core.pacer
+        if pacer.paused and not pacer.waits_for_control():
+            return
+        waiters, self._step_waiters = self._step_waiters, []
+        for fut in waiters:
+            _resolve(fut)
+
     def _on_host_thread(self) -> bool:
         loop = self._loop
         thread_id = loop_thread_id(loop)
@@ -704,6 +742,8 @@ class SimDriver(PacingControls):
                 await self._settle(stop_early=True)
                 if self._stopping:
                     return
+                if self._step_waiters:
+                    self._steps_settled()
                 if core.settled_due_now() and core.wake_settled():
                     continue
                 self._probe.arm()
@@ -732,6 +772,13 @@ class SimDriver(PacingControls):
         self._stopping = True
         failure = error if isinstance(error, Exception) else None
         self._error = failure
+        waiters, self._step_waiters = self._step_waiters, []
+        for fut in waiters:
+            if not fut.done():
+                fut.set_exception(
+                    failure
+                    or LoopClosedError("the SimDriver was stopped before the steps were taken")
+                )
         self._core.end_waits(
             failure,
             lambda: LoopClosedError(
@@ -748,3 +795,22 @@ class SimDriver(PacingControls):
                 attach_clock(loop, self._previous_clock)
             else:
                 detach_clock(loop)
+
+
+class Steps:
+    """What :meth:`SimDriver.step` returns: awaiting it (on the driver's loop) waits until
+    the requested steps are taken and the work they woke has settled.
+
+    :param driver: the driver the steps were requested from.
+    """
+
+    __slots__ = ("_driver",)
+
+    def __init__(self, driver: SimDriver) -> None:
+        self._driver = driver
+
+    def __await__(self) -> Generator[Any, None, None]:
+        return self._driver._steps_taken().__await__()
+
+    def __repr__(self) -> str:
+        return f"<Steps of {self._driver!r}>"

@@ -9,10 +9,15 @@ loop's ticks, missed periods and lateness. Other commands live in their own modu
 
 from __future__ import annotations
 
+import ast
 import functools
+import inspect
 import json
+import sys
+import textwrap
+import traceback
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 import typer
 from rich.console import Console
@@ -23,23 +28,38 @@ from evclock._errors import EvClockError, InvalidArgumentError, MissingExtraErro
 from evclock.ros2 import _cli as ros2_cli
 from evclock.tools import _cli_sweep, _cli_trace  # noqa: F401  (they register their commands)
 from evclock.tools._cli_app import (
+    EXIT_ERROR,
+    EXIT_INTERRUPTED,
     EXIT_USAGE,
     app,
+    check_seed,
+    check_until,
     check_writable,
     exit_code,
     parse_params,
     print_error,
+    print_run_error,
     progress_bar,
     render_report,
+    with_exit_statuses,
 )
 from evclock.tools._runs import parse_rtf, run_scenario
 from evclock.tools._scenarios import (
+    load_scenario,
+    parameters,
     registered_scenarios,
 )
 
 
 @app.command("list")
-def list_scenarios() -> None:
+def list_scenarios(
+    verbose: Annotated[
+        bool,
+        typer.Option(
+            "--verbose", "-v", help="Also list each scenario's parameters (as evclock params)."
+        ),
+    ] = False,
+) -> None:
     """List the registered scenarios (entry-point group evclock.scenarios).
 
     A scenario whose extra is not installed is listed with what it needs,
@@ -58,6 +78,7 @@ def list_scenarios() -> None:
         print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
     missing: dict[str, list[str]] = {}  # error message -> scenario names (insertion order)
+    loaded: list[type[Any]] = []
     broken: list[str] = []
     for entry in entries:
         try:
@@ -81,7 +102,11 @@ def list_scenarios() -> None:
                 escape(str(cls.description)),
                 escape(entry.distribution),
             )
+            if verbose:
+                loaded.append(cls)
     Console().print(table)
+    for cls in loaded:
+        print_parameters(cls)
     stderr = Console(stderr=True)
     for message, names in missing.items():
         stderr.print(
@@ -94,7 +119,70 @@ def list_scenarios() -> None:
         raise typer.Exit(EXIT_USAGE)
 
 
+def parameter_help(cls: type[Any]) -> dict[str, str]:
+    """The help of each tunable parameter of scenario class ``cls``: the first line of the
+    string literal that follows its assignment in the class body (an attribute docstring),
+    read from the source of ``cls`` and its bases; ``""`` where there is none."""
+    found: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        try:
+            tree = ast.parse(textwrap.dedent(inspect.getsource(klass)))
+        except (OSError, TypeError, SyntaxError):
+            continue  # built in, generated (a --param subclass), or no source
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for statement, following in zip(body, [*body[1:], None], strict=True):
+            if isinstance(statement, ast.Assign) and len(statement.targets) == 1:
+                target = statement.targets[0]
+            elif isinstance(statement, ast.AnnAssign):
+                target = statement.target
+            else:
+                continue
+            if not isinstance(target, ast.Name):
+                continue
+            text = ""
+            if (
+                isinstance(following, ast.Expr)
+                and isinstance(following.value, ast.Constant)
+                and isinstance(following.value.value, str)
+            ):
+                text = inspect.cleandoc(following.value.value).split("\n\n")[0]
+            found[target.id] = " ".join(text.split())
+    return found
+
+
+@app.command("params")
+def params_command(
+    scenario: Annotated[
+        str,
+        typer.Argument(help="A registered name, a file path.py[:Class] or package.module:Class."),
+    ],
+) -> None:
+    """List a scenario's parameters (what --param NAME=VALUE sets): name, type, default
+    and help. Exit status 0, or 2 for an unknown scenario."""
+    try:
+        cls = load_scenario(scenario)
+    except EvClockError as exc:
+        print_error(exc)
+        raise typer.Exit(EXIT_USAGE) from None
+    print_parameters(cls)
+
+
+def print_parameters(cls: type[Any]) -> None:
+    """The table of scenario class ``cls``'s parameters: name, type, default and help."""
+    helps = parameter_help(cls)
+    table = Table(title=f"{cls.name}: parameters (--param NAME=VALUE)")
+    for column in ("name", "type", "default", "help"):
+        table.add_column(column, no_wrap=column != "help")
+    for name, default in parameters(cls).items():
+        shown = ("true" if default else "false") if isinstance(default, bool) else repr(default)
+        table.add_row(
+            escape(name), type(default).__name__, escape(shown), escape(helps.get(name, ""))
+        )
+    Console().print(table)
+
+
 @app.command("run")
+@with_exit_statuses
 def run_command(
     scenario: Annotated[
         str,
@@ -115,6 +203,10 @@ def run_command(
         typer.Option("--param", help="Set a scenario parameter: name=value (repeatable)."),
     ] = None,
     gui: Annotated[bool, typer.Option(help="Open PyBullet's GUI (needs a display).")] = False,
+    engine: Annotated[
+        Literal["pybullet", "mujoco"],
+        typer.Option(help="Physics engine: PyBullet, or MuJoCo (kuka, cartpole)."),
+    ] = "pybullet",
     wall: Annotated[
         bool, typer.Option(help="Run the controllers on wall time; physics steps in real time.")
     ] = False,
@@ -122,13 +214,30 @@ def run_command(
         Path | None, typer.Option("--json", help="Also write the report as JSON to this file.")
     ] = None,
     record: Annotated[
-        Path | None, typer.Option(help="Record the run to this MCAP file (the record extra).")
+        Path | None,
+        typer.Option(help="Record the run to this MCAP file (pip install 'evclock[record]')."),
     ] = None,
+    foxglove: Annotated[
+        bool,
+        typer.Option(
+            help="Serve the run live to Foxglove over WebSocket (the record extra); "
+            "real time unless --rtf K is given."
+        ),
+    ] = False,
+    foxglove_addr: Annotated[
+        str,
+        typer.Option(help="Where --foxglove listens: HOST:PORT (port 0: any free port)."),
+    ] = "127.0.0.1:8765",
     quiet: Annotated[bool, typer.Option(help="No progress bar.")] = False,
+    verbose: Annotated[
+        bool,
+        typer.Option(help="If the scenario raises, print its full traceback, not one line."),
+    ] = False,
     serve: Annotated[
         str | None,
         typer.Option(
-            help="Serve this run's sim time at ADDR (unix:///path.sock, tcp://HOST:PORT)."
+            help="Serve this run's sim time at ADDR (unix:///path.sock, or "
+            "tcp://HOST:PORT?token=SECRET: TCP always needs a token)."
         ),
     ] = None,
     remote_controllers: Annotated[
@@ -144,11 +253,14 @@ def run_command(
 ) -> None:
     """Run a scenario with its controllers on evclock time.
 
-    Exit status: 0 the mission succeeded, 1 it failed, 2 bad input, 3 cut
-    short by --until before the mission ended (no verdict).
+    With --serve ADDR (and no --remote-controllers) the controllers run in
+    this process and other processes may follow its sim time; with
+    --remote-controllers they run in `evclock control`.
     """
     console = Console()
     try:
+        check_seed(seed)
+        check_until(until)
         pace = parse_rtf(rtf)
         ros2 = ros2_cli.options_from_cli(
             ros2_clock,
@@ -171,6 +283,7 @@ def run_command(
         for path, option in ((json_out, "--json"), (record, "--record")):
             if path is not None:
                 check_writable(path, option)
+        load_scenario(scenario)  # an unknown scenario fails here, before any output
         values = parse_params(scenario, param or [])
         multi = [name for name, vals in values.items() if len(vals) != 1]
         if multi:
@@ -180,16 +293,24 @@ def run_command(
             )
         if remote_controllers and serve is None:
             raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
-        if serve is not None and (values or record is not None):
+        if serve is not None and engine != "pybullet":
             raise InvalidArgumentError(
-                "--serve runs the scenario as registered: drop --param and --record "
+                f"--serve runs the scenario on PyBullet; --engine {engine} is not supported "
+                "with it yet: drop --serve, or use --engine pybullet"
+            )
+        if serve is not None and values:
+            raise InvalidArgumentError(
+                "--serve runs the scenario as registered: drop --param "
                 "(the joined controllers could not know about them)"
             )
         if record is not None:
             from evclock.tools._record import mcap_writer_class
 
             mcap_writer_class()
-        with progress_bar(console, quiet) as progress:
+        from evclock.tools._record import foxglove_option
+
+        live, pace = foxglove_option(foxglove, foxglove_addr, pace, serve=serve)
+        with progress_bar(console, quiet) as progress, live:
             if serve is not None:
                 report = _served(serve, remote_controllers)(
                     scenario,
@@ -199,6 +320,7 @@ def run_command(
                     gui=gui,
                     wall=wall,
                     progress=progress,
+                    record=record,
                 )
             else:
                 report = run_scenario(
@@ -212,13 +334,19 @@ def run_command(
                     record=record,
                     progress=progress,
                     ros2_clock=ros2,
+                    engine=engine,
                 )
     except EvClockError as exc:
         print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
+    except KeyboardInterrupt:
+        print_error("interrupted (Ctrl-C) before the run started: nothing to report")
+        raise typer.Exit(EXIT_INTERRUPTED) from None
     render_report(report, console)
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
+    if report.error is not None:
+        print_run_error(report, verbose)
     raise typer.Exit(exit_code(report))
 
 
@@ -231,12 +359,56 @@ def _served(address: str, remote_controllers: bool) -> Any:
 def _register_remote() -> None:
     from evclock.tools._cli_remote import control_command
 
-    app.command("control")(control_command)
+    app.command("control")(with_exit_statuses(control_command))
 
 
 _register_remote()
 
 
-def main() -> None:
-    """Entry point of the ``evclock`` console script."""
-    app()
+def main(args: list[str] | None = None) -> None:
+    """Entry point of the ``evclock`` console script: runs the command and exits with its
+    status (see :data:`EXIT_STATUS_HELP`).
+
+    A usage error is one ``error:`` line and status 2; Ctrl-C outside a run is status 130;
+    an unexpected exception is one ``error:`` line naming it and where it was raised (the
+    traceback too with ``--verbose``) and status 4. PyBullet is imported first, without the
+    build-time banner it prints on import.
+
+    :param args: the command line without the program name (default: ``sys.argv[1:]``).
+    """
+    from evclock.tools._runs import describe_exception, exception_origin, import_pybullet_quietly
+
+    # click's exceptions, wherever this typer takes them from (click, or its own copy).
+    errors = sys.modules[typer.BadParameter.__module__]
+    # (an empty tuple catches nothing: this click may not have the class)
+    no_args: tuple[type[Exception], ...] = tuple(
+        cls for cls in (getattr(errors, "NoArgsIsHelpError", None),) if cls is not None
+    )
+    argv = sys.argv[1:] if args is None else args
+    import_pybullet_quietly()
+    try:
+        status = app(args=argv, prog_name="evclock", standalone_mode=False)
+    except no_args as exc:
+        exc.show()  # type: ignore[attr-defined]
+        sys.exit(exc.exit_code)  # type: ignore[attr-defined]
+    except errors.UsageError as exc:
+        hint = f"; see '{exc.ctx.command_path} --help'" if exc.ctx is not None else ""
+        print_error(f"{exc.format_message().rstrip('.')}{hint}")
+        sys.exit(EXIT_USAGE)
+    except errors.ClickException as exc:
+        print_error(exc.format_message())
+        sys.exit(exc.exit_code)
+    except typer.Abort:  # Ctrl-C (or end of input) outside a run
+        print_error("interrupted (Ctrl-C)")
+        sys.exit(EXIT_INTERRUPTED)
+    except Exception as exc:
+        if "--verbose" in argv:
+            traceback.print_exception(exc)
+        print_error(
+            f"{describe_exception(exc)} (raised in {exception_origin(exc)}); "
+            "rerun with --verbose for the traceback"
+            if "--verbose" not in argv
+            else f"{describe_exception(exc)} (raised in {exception_origin(exc)})"
+        )
+        sys.exit(EXIT_ERROR)
+    sys.exit(status if isinstance(status, int) else 0)

@@ -4,16 +4,19 @@ Every command module (``_cli``: ``list``, ``run``; ``_cli_sweep``; ``_cli_trace`
 ``_cli_remote``) registers on :data:`app` and uses the helpers here; :mod:`evclock.tools._cli`
 imports them all and holds the entry point.
 
-Exit codes: 0 success, 1 the mission failed, 2 bad input, 3 the run was cut short by
-``--until`` before the mission ended, 130 interrupted.
+Exit statuses (:data:`EXIT_STATUS_HELP`, also in ``evclock --help`` and docs/cli.md): 0
+success, 1 the mission failed, 2 bad input, 3 the run was cut short by ``--until`` before the
+mission ended, 4 the scenario or a controller raised, 130 interrupted (Ctrl-C).
 """
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, TypeVar
 
 import typer
 from rich.console import Console
@@ -34,12 +37,38 @@ EXIT_SUCCESS = 0
 EXIT_FAILED = 1
 EXIT_USAGE = 2
 EXIT_CUT_SHORT = 3
+EXIT_ERROR = 4
 EXIT_INTERRUPTED = 130
+
+#: The exit statuses, as ``evclock --help`` prints them (``\b``: click keeps the lines).
+EXIT_STATUS_HELP = """\b
+Exit status:
+  0    success (run: the mission succeeded; sweep: every run did)
+  1    failed criterion (run: the mission failed; sweep: a run failed or was cut short;
+       trace diff: the recordings differ)
+  2    usage error: a bad option, value, scenario or parameter (one `error:` line)
+  3    cut short by --until before the mission ended (run, control: no verdict)
+  4    error: the scenario or a controller raised (run: one `error:` line, the
+       traceback in the --json report and with --verbose; sweep: a run raised)
+  130  interrupted by Ctrl-C (the partial report is printed and written)"""
+
+_Command = TypeVar("_Command", bound=Callable[..., None])
+
+
+def with_exit_statuses(command: _Command) -> _Command:
+    """``command`` with the exit-status table appended to its help (its docstring)."""
+    command.__doc__ = f"{inspect.cleandoc(command.__doc__ or '')}\n\n{EXIT_STATUS_HELP}\n"
+    return command
+
 
 app = typer.Typer(
     help="evclock: asyncio robot controllers on simulation time.",
+    epilog=EXIT_STATUS_HELP,
     no_args_is_help=True,
     add_completion=False,
+    # Help texts are plain text: rich markup would swallow 'evclock[record]'.
+    rich_markup_mode=None,
+    pretty_exceptions_enable=False,
 )
 
 
@@ -95,9 +124,36 @@ def parse_params(scenario: str, assignments: list[str]) -> dict[str, list[ParamV
     return values
 
 
-def print_error(exc: EvClockError) -> None:
+def print_error(exc: EvClockError | str) -> None:
     """Print ``error: <message>`` on stderr (the message verbatim, never read as markup)."""
     Console(stderr=True).print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+
+
+def check_seed(seed: int, option: str = "--seed") -> int:
+    """``seed`` if it is a valid seed (0 to 2**32 - 1), else an :class:`InvalidArgumentError`."""
+    if not 0 <= seed < 2**32:
+        raise InvalidArgumentError(
+            f"{option} takes a whole number from 0 to {2**32 - 1}, got {seed}"
+        )
+    return seed
+
+
+def check_until(until: float | None) -> None:
+    """Refuse a ``--until`` that is not a positive, finite number of seconds."""
+    if until is not None and not (math.isfinite(until) and until > 0):
+        raise InvalidArgumentError(f"--until must be a positive number of seconds, got {until!r}")
+
+
+def print_run_error(report: RunReport, verbose: bool) -> None:
+    """The one ``error:`` line of a run that raised; with ``verbose``, its traceback first."""
+    console = Console(stderr=True)
+    if verbose and report.traceback:
+        console.print(report.traceback.rstrip(), markup=False, highlight=False, soft_wrap=True)
+    hint = "" if verbose else "; the traceback is in the --json report and with --verbose"
+    print_error(
+        f"{report.scenario} (seed {report.seed}) raised {report.error} while "
+        f"{report.error_where}{hint}"
+    )
 
 
 def _ms(seconds: float | int) -> str:
@@ -160,7 +216,18 @@ def render_report(report: RunReport, console: Console) -> None:
     summary.add_row("achieved rtf", rtf)
     console.print(summary)
     head = f"{report.scenario} (seed {report.seed})"
-    if not report.finished:
+    if report.error is not None:
+        console.print(
+            f"{head}: [red]ERROR[/red] {escape(report.error)} at {report.sim_time_s:g} s",
+            soft_wrap=True,
+        )
+    elif report.interrupted:
+        console.print(
+            f"{head}: [yellow]INTERRUPTED[/yellow] by Ctrl-C at {report.sim_time_s:g} s "
+            "(no verdict; the figures above are partial)",
+            soft_wrap=True,
+        )
+    elif not report.finished:
         console.print(
             f"{head}: [yellow]CUT SHORT[/yellow] at --until {report.until_s:g} s, before the "
             "mission ended (no verdict); raise --until or drop it to use the scenario's "
@@ -174,6 +241,10 @@ def render_report(report: RunReport, console: Console) -> None:
 
 def exit_code(report: RunReport) -> int:
     """The exit status of ``evclock run`` for ``report``."""
+    if report.error is not None:
+        return EXIT_ERROR
+    if report.interrupted:
+        return EXIT_INTERRUPTED
     if not report.finished:
         return EXIT_CUT_SHORT
     return EXIT_SUCCESS if report.success else EXIT_FAILED

@@ -5,7 +5,12 @@
 waits for the scenario's controllers, which ``evclock control`` runs in another process in
 lockstep: they build the same scenario object (on a private copy of the world, only for its
 attributes), then drive the served physics through :class:`RemotePhysics`. At the end the
-controllers publish their report to the simulation, so both ends report the same run.
+controllers hand their verdict (success, summary, loop statistics) to the simulation, so
+both ends report the same run. The simulation process alone writes its report and exit
+status: it accepts that verdict only from the lockstep participant it waited for, once and
+well-formed (anything else is answered with an error to its sender), measures sim time,
+wall time and the final state itself, and stops when the controllers leave (a follower that
+stays joined changes nothing).
 """
 
 from __future__ import annotations
@@ -63,10 +68,22 @@ def serve_scenario(
     progress: Progress | None = None,
     on_fault: str = "abort",
     step_timeout: float | None = DEFAULT_STEP_TIMEOUT,
+    record: Path | None = None,
 ) -> RunReport:
-    """Run scenario ``name`` serving its sim time at ``address`` (see the module docstring)."""
+    """Run scenario ``name`` serving its sim time at ``address`` (see the module docstring).
+
+    ``record`` (and a live view, see :func:`evclock.tools._record.live_view`): the simulation
+    writes the world's channels (state, joints, transforms, scene) and, when the controllers
+    run here, their loops and channels too.
+    """
     from evclock.sources import PyBulletTimeSource
-    from evclock.tools._runs import RunReport, _loop_reports, scenario_class
+    from evclock.tools._runs import (
+        RunReport,
+        _loop_reports,
+        _Outcome,
+        install_step_hooks,
+        scenario_class,
+    )
 
     if wall:
         raise InvalidArgumentError("--serve serves sim time: drop --wall")
@@ -74,16 +91,34 @@ def serve_scenario(
     limit = _limit(cls, until)
     source = PyBulletTimeSource.connect(gui=gui)
     scenario = cls(source.client, seed)
-    info = {"scenario": cls.name, "seed": seed, "until": limit}
+    install_step_hooks(scenario, source)  # the world's per-step hooks run with the physics
+    from evclock.tools._record import open_recorder  # --record/--foxglove: the simulation's
+
+    recorder = open_recorder(record, cls, seed, {}, limit)
+    info = {
+        "scenario": cls.name,
+        "seed": seed,
+        "until": limit,
+        "remote_controllers": remote_controllers,
+    }
     handed: dict[str, Any] = {}
 
     def receive_report(message: Message) -> None:
-        handed.update(json.loads(message.data))
+        if message.sender != CONTROLLERS:
+            raise InvalidArgumentError(
+                f"only the controllers ({CONTROLLERS!r}) hand over the run's report, not "
+                f"{message.sender!r}"
+            )
+        if handed:
+            raise InvalidArgumentError("the controllers' report was handed over already")
+        handed.update(_checked_report(message.data))
 
     async def main() -> RunReport:
         loop = asyncio.get_running_loop()
         assert isinstance(loop, SimEventLoop)
         clk = clock()
+        if recorder is not None:
+            recorder.attach(source, clk, scenario.state_vector)
         async with serve(
             address, info=info, on_fault=on_fault, step_timeout=step_timeout
         ) as server:
@@ -91,21 +126,31 @@ def serve_scenario(
             server.provide(STATE_SERVICE, lambda _: json.dumps(scenario.state_vector()).encode())
             server.subscribe(REPORT_TOPIC, receive_report)
             if progress is not None:
-                progress.console.print(f"serving {cls.name}'s sim time at {server.address}")
-            finished = True
+                where = (
+                    "its controllers join with `evclock control`"
+                    if remote_controllers
+                    else "its controllers run in this process; other processes may follow "
+                    "this sim time (`evclock control` needs --remote-controllers)"
+                )
+                progress.console.print(
+                    f"serving {cls.name}'s sim time at {server.address}: {where}",
+                    soft_wrap=True,
+                    markup=False,
+                    highlight=False,
+                )
+            outcome = _Outcome()
             if remote_controllers:
                 await server.wait_for_participants(CONTROLLERS)
                 wall0 = time.perf_counter()
-                await server.wait_until_left()
+                await server.wait_until_left(CONTROLLERS)
             else:
                 wall0 = time.perf_counter()
-                try:
-                    async with asyncio.timeout(limit):
-                        await scenario.run(clk)
-                except TimeoutError:
-                    finished = False
+                await outcome.run(scenario, clk, limit)
+            finished = outcome.finished and outcome.error is None and not outcome.interrupted
             wall_s = time.perf_counter() - wall0
         sim_s = loop.time()
+        if recorder is not None:
+            recorder.observe()  # the final sample, as the in-process run records it
         if remote_controllers and not handed:
             raise ParticipantLostError(
                 f"the controllers left at {sim_s:g} s without handing over their report; "
@@ -113,11 +158,13 @@ def serve_scenario(
                 CONTROLLERS,
             )
         summary = handed["summary"] if remote_controllers else scenario.summary()
-        return RunReport(
+        report = RunReport(
             scenario=cls.name,
             seed=seed,
             mode="sim",
-            success=handed["success"] if remote_controllers else scenario.success(),
+            success=handed["success"]
+            if remote_controllers
+            else outcome.error is None and scenario.success(),
             finished=handed["finished"] if remote_controllers else finished,
             sim_time_s=sim_s,
             wall_time_s=wall_s,
@@ -127,8 +174,48 @@ def serve_scenario(
             final_state=scenario.state_vector(),
             until_s=limit,
         )
+        if remote_controllers:  # the controllers' error, as they handed it over
+            report.error = handed.get("error")
+            report.error_where = handed.get("error_where")
+            report.traceback = handed.get("traceback")
+            return report
+        return outcome.apply(report)
 
-    return evclock_run(main(), source=source, rtf=rtf)
+    report: RunReport | None = None
+    try:
+        report = evclock_run(main(), source=source, rtf=rtf)
+    finally:
+        if recorder is not None:
+            from evclock.tools._runs import _outcome
+
+            recorder.close(None if report is None else _outcome(report))
+    return report
+
+
+def _checked_report(data: bytes) -> dict[str, Any]:
+    """The controllers' verdict, if it is one: ``success``/``finished`` booleans, a
+    ``summary`` object and ``loops`` as ``{name, hz, stats}`` objects."""
+    try:
+        report = json.loads(data)
+    except ValueError:
+        raise InvalidArgumentError("the controllers' report is not JSON") from None
+    if not isinstance(report, dict):
+        raise InvalidArgumentError("the controllers' report is not a JSON object")
+    for key in ("success", "finished"):
+        if not isinstance(report.get(key), bool):
+            raise InvalidArgumentError(f"the controllers' report has no boolean {key!r}")
+    if not isinstance(report.get("summary"), dict):
+        raise InvalidArgumentError("the controllers' report has no 'summary' object")
+    loops = report.get("loops")
+    if not isinstance(loops, list) or not all(
+        isinstance(d, dict) and {"name", "hz", "stats"} <= d.keys() for d in loops
+    ):
+        raise InvalidArgumentError("the controllers' report has no 'loops' list")
+    checked = {key: report[key] for key in ("success", "finished", "summary", "loops")}
+    for key in ("error", "error_where", "traceback"):  # a controller that raised: why
+        if isinstance(report.get(key), str):
+            checked[key] = report[key]
+    return checked
 
 
 def _loops_from(data: list[dict[str, Any]]) -> list[Any]:
@@ -149,7 +236,7 @@ def control_scenario(
     name: str, *, clock_url: str, seed: int = 0, until: float | None = None
 ) -> RunReport:
     """Run scenario ``name``'s controllers against the simulation served at ``clock_url``."""
-    from evclock.tools._runs import RunReport, _loop_reports, scenario_class
+    from evclock.tools._runs import RunReport, _loop_reports, _Outcome, scenario_class
 
     scheme = urllib.parse.urlsplit(clock_url).scheme if isinstance(clock_url, str) else None
     if scheme not in ("unix", "tcp"):
@@ -172,6 +259,14 @@ def control_scenario(
     async def main() -> RunReport:
         link = participant()
         served = (link.info.get("scenario"), link.info.get("seed"))
+        if link.info.get("remote_controllers") is False:
+            raise InvalidArgumentError(
+                f"the simulation at {link.address} runs {served[0]!r}'s controllers itself "
+                "(it was started without --remote-controllers); these would be a second "
+                f"controller stack: restart it with `evclock run {cls.name} --serve ADDR "
+                "--remote-controllers`, or only follow its sim time (EVCLOCK_CLOCK="
+                "ADDR?mode=follow)"
+            )
         if served != (cls.name, seed):
             raise InvalidArgumentError(
                 f"the simulation at {link.address} runs {served[0]!r} with seed {served[1]}, "
@@ -180,19 +275,16 @@ def control_scenario(
         scenario.pb = RemotePhysics(link)
         clk = clock()
         wall0 = time.perf_counter()
-        finished = True
-        try:
-            async with asyncio.timeout(limit):
-                await scenario.run(clk)
-        except TimeoutError:
-            finished = False
+        outcome = _Outcome()
+        await outcome.run(scenario, clk, limit)
+        finished = outcome.finished and outcome.error is None and not outcome.interrupted
         wall_s = time.perf_counter() - wall0
         sim_s = clk.now().seconds
         report = RunReport(
             scenario=cls.name,
             seed=seed,
             mode="sim",
-            success=scenario.success(),
+            success=outcome.error is None and scenario.success(),
             finished=finished,
             sim_time_s=sim_s,
             wall_time_s=wall_s,
@@ -202,6 +294,7 @@ def control_scenario(
             final_state=json.loads(link.call(STATE_SERVICE)),
             until_s=limit,
         )
+        outcome.apply(report)
         link.publish(REPORT_TOPIC, json.dumps(report.to_json()).encode())
         return report
 
@@ -225,17 +318,24 @@ def control_command(
     ] = None,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
 ) -> None:
-    """Run a scenario's controllers in lockstep with a simulation served by another process.
-
-    Exit status: 0 the mission succeeded, 1 it failed, 2 bad input, 3 cut
-    short by --until before the mission ended (no verdict).
-    """
+    """Run a scenario's controllers in lockstep with a simulation served by another process
+    (`evclock run SIM --serve ADDR --remote-controllers`; one started without
+    --remote-controllers runs its own controllers and is refused)."""
     from rich.console import Console
 
-    from evclock.tools._cli_app import exit_code, print_error, render_report
+    from evclock.tools._cli_app import (
+        check_seed,
+        check_until,
+        exit_code,
+        print_error,
+        print_run_error,
+        render_report,
+    )
 
     console = Console()
     try:
+        check_seed(seed)
+        check_until(until)
         report = control_scenario(sim, clock_url=clock_url, seed=seed, until=until)
     except EvClockError as exc:
         print_error(exc)
@@ -244,4 +344,6 @@ def control_command(
         render_report(report, console)
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
+    if report.error is not None:
+        print_run_error(report, verbose=False)
     raise typer.Exit(exit_code(report))

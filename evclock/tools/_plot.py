@@ -2,6 +2,8 @@
 
 - :func:`plot_run`: each rate loop's tick lateness over sim time, and the achieved real-time
   factor over sim time (``evclock plot run.mcap -o run.png``);
+- :func:`plot_fields`: any numeric fields of a recording over time, one line each, in one
+  figure (``evclock plot run.mcap /evclock/joints.joints[elbow].position -o f.png``);
 - :func:`plot_sweep`: the histogram of every numeric report field over a sweep's runs
   (``evclock sweep ... --plot sweep.png``).
 
@@ -72,6 +74,34 @@ def plot_run(trace: Trace, output: Path) -> None:
     rtf_axes.set_title("achieved real-time factor (per 0.05 s of sim time)", fontsize=9)
     rtf_axes.set_ylabel("rtf")
     rtf_axes.set_xlabel("sim time (s)")
+    figure.tight_layout()
+    figure.savefig(output, format="png")
+
+
+def plot_fields(trace: Trace, series: list[str], output: Path) -> None:
+    """Each ``TOPIC.field`` of ``series`` over time, one line each (palette order), in one
+    figure with a legend, as a PNG. The x-axis is the recording's timeline (sim seconds, or
+    wall seconds for a ``--wall`` run).
+
+    :param trace: a recording read with :func:`read_trace`.
+    :param series: the fields, as ``TOPIC.field.path`` (see :func:`evclock.tools._trace.
+        series_values`).
+    :param output: the PNG file to write.
+    :raises TraceError: a series names no recorded topic or field, or a non-numeric field.
+    :raises MissingExtraError: matplotlib is missing (``pip install 'evclock[plot]'``).
+    """
+    from evclock.tools._trace import series_values
+
+    data = [(name, *series_values(trace, name)) for name in series]
+    figure = figure_class()(figsize=(10, 4.5), dpi=100)
+    ax = figure.subplots(1, 1)
+    for i, (name, times, values) in enumerate(data):
+        ax.plot(times, values, color=PALETTE[i % len(PALETTE)], linewidth=1.5, label=name)
+    ax.set_xlabel(f"{trace.timeline} time (s)")
+    ax.legend(fontsize=8, loc="best")
+    ax.grid(True, alpha=0.3)
+    scenario = trace.metadata.get("evclock.run", {}).get("scenario")
+    ax.set_title(trace.path.name if scenario is None else f"{scenario}: {trace.path.name}")
     figure.tight_layout()
     figure.savefig(output, format="png")
 

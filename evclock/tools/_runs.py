@@ -18,8 +18,10 @@ import math
 import os
 import re
 import sys
+import sysconfig
 import tempfile
 import time
+import traceback
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,7 +33,13 @@ from evclock.hosts._loop import SimEventLoop
 from evclock.hosts._runner import run as evclock_run
 from evclock.kernel._clock import Clock
 from evclock.kernel._pacing import check_rtf
-from evclock.tools._scenarios import ParamValue, configure, load_scenario
+from evclock.tools._scenarios import (
+    ParamValue,
+    check_engine,
+    configure,
+    load_scenario,
+    open_engine,
+)
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -80,6 +88,11 @@ class RunReport:
     :ivar setup_output: what the physics engine printed while the world was set up.
     :ivar stamps: stamp diagnostics the scenario used, if any.
     :ivar evclock_version: the evclock version that made the run.
+    :ivar error: the exception the scenario or a controller raised, on one line
+        (``RuntimeError: boom``; the root cause, not an ``ExceptionGroup``), or None.
+    :ivar error_where: where it was raised (phase, function, file and line), or None.
+    :ivar traceback: the exception's full traceback, or None.
+    :ivar interrupted: whether the run was stopped by Ctrl-C (the report is partial).
     """
 
     scenario: str
@@ -101,10 +114,23 @@ class RunReport:
     """Stamp diagnostics the scenario used (see evclock.data._diagnostics), if any."""
     evclock_version: str = dataclasses.field(default_factory=lambda: _installed_version())
     """The evclock that made the run (its distribution's version)."""
+    error: str | None = None
+    """The exception that ended the run (set-up or controllers), on one line, or None."""
+    error_where: str | None = None
+    """Where that exception was raised: phase, function, file and line."""
+    traceback: str | None = None
+    """The full traceback of that exception."""
+    interrupted: bool = False
+    """Whether the run was stopped by Ctrl-C before it ended (the figures are partial)."""
 
     @property
     def verdict(self) -> str:
-        """``success``, ``failed`` or ``cut short``."""
+        """``success``, ``failed``, ``cut short``, ``error`` (the scenario or a controller
+        raised) or ``interrupted`` (Ctrl-C)."""
+        if self.error is not None:
+            return "error"
+        if self.interrupted:
+            return "interrupted"
         if not self.finished:
             return "cut short"
         return "success" if self.success else "failed"
@@ -128,6 +154,44 @@ def _jsonable(value: object) -> object:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+def root_exception(exc: BaseException) -> BaseException:
+    """The first leaf of ``exc`` when it is an exception group (a TaskGroup's), else ``exc``."""
+    while isinstance(exc, BaseExceptionGroup) and exc.exceptions:
+        exc = exc.exceptions[0]
+    return exc
+
+
+def describe_exception(exc: BaseException) -> str:
+    """``Type: first line of the message`` of the root of ``exc`` (see :func:`root_exception`)."""
+    root = root_exception(exc)
+    lines = str(root).strip().splitlines()
+    return f"{type(root).__name__}: {lines[0]}" if lines else type(root).__name__
+
+
+def _library_file(filename: str) -> bool:
+    stdlib = sysconfig.get_paths()["stdlib"]
+    return filename.startswith(stdlib) or any(
+        part in filename for part in ("site-packages", "dist-packages", "<frozen")
+    )
+
+
+def exception_origin(exc: BaseException) -> str:
+    """``function (file:line)`` of the innermost frame of the root of ``exc`` in the user's
+    code (not the standard library nor an installed package), else of the innermost frame."""
+    frames = [
+        (frame.f_code, line) for frame, line in traceback.walk_tb(root_exception(exc).__traceback__)
+    ]
+    if not frames:
+        return "an unknown place"
+    own = [(code, line) for code, line in frames if not _library_file(code.co_filename)]
+    code, line = (own or frames)[-1]
+    return f"{code.co_qualname} ({code.co_filename}:{line})"
+
+
+def _traceback_text(exc: BaseException) -> str:
+    return "".join(traceback.format_exception(exc))
 
 
 def parse_rtf(text: str) -> float | None:
@@ -180,6 +244,32 @@ def captured_native_stdout(lines: list[str]) -> Iterator[None]:
     lines.extend(f"{n}x {message}" if n > 1 else message for message, n in counts.items())
 
 
+@contextlib.contextmanager
+def silenced_native_stderr() -> Iterator[None]:
+    """Send what native code writes on file descriptor 2 to /dev/null meanwhile (Python's own
+    ``sys.stderr`` is flushed first)."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with open(os.devnull, "wb") as sink:
+        os.dup2(sink.fileno(), 2)
+        try:
+            yield
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+def import_pybullet_quietly() -> None:
+    """Import PyBullet, if it is installed, without its ``pybullet build time: ...`` banner
+    (a library's banner is no business of the user's terminal)."""
+    import importlib.util
+
+    if "pybullet" in sys.modules or importlib.util.find_spec("pybullet") is None:
+        return
+    with silenced_native_stderr():
+        import pybullet  # noqa: F401
+
+
 def _loop_reports(clk: Clock) -> list[LoopReport]:
     return [LoopReport(rate.name, float(rate.hz), rate.stats.as_dict()) for rate in clk.rates]
 
@@ -202,6 +292,7 @@ def run_scenario(
     record: Path | None = None,
     progress: Progress | None = None,
     ros2_clock: Ros2ClockOptions | None = None,
+    engine: str = "pybullet",
 ) -> RunReport:
     """Run ``scenario`` (a name, ``module:Class``, a file, or a class) once and report.
 
@@ -220,6 +311,8 @@ def run_scenario(
     :param record: an MCAP file to record the run to (sim time only).
     :param progress: a rich Progress to show the run on.
     :param ros2_clock: publish sim time as ROS 2 ``/clock`` with these options.
+    :param engine: the physics engine, ``"pybullet"`` (default) or ``"mujoco"`` (see
+        :func:`~evclock.tools._scenarios.open_engine`).
     :returns: the :class:`RunReport` of the run.
     :raises InvalidTypeError: ``seed`` is not an int, or a parameter has the wrong type.
     :raises InvalidArgumentError: a non-positive ``until``, an unknown scenario or
@@ -236,6 +329,11 @@ def run_scenario(
         raise InvalidTypeError(f"seed must be an int, got {seed!r}")
     params = dict(params or {})
     cls = scenario_class(scenario, params)
+    check_engine(cls, engine)
+    if engine != "pybullet" and (wall or record is not None):
+        raise InvalidArgumentError(
+            f"{'--wall' if wall else '--record'} runs on PyBullet only: drop --engine {engine}"
+        )
     limit = cls.default_until if until is None else until
     if isinstance(limit, bool) or not (
         isinstance(limit, int | float) and math.isfinite(limit) and limit > 0
@@ -244,22 +342,105 @@ def run_scenario(
     if gui:
         check_display_for_gui()
     if wall:
-        if record is not None:
-            raise InvalidArgumentError("--record needs sim time: drop --wall to record a run")
         if ros2_clock is not None:
             raise InvalidArgumentError("--ros2-clock publishes sim time: drop --wall")
-        report = _run_on_wall_time(cls, float(limit), seed, gui, progress)
+        report = _run_on_wall_time(cls, float(limit), seed, gui, progress, record, params)
     else:
         report = _run_on_sim_time(
-            cls, float(limit), rtf, seed, params, gui, record, progress, ros2_clock
+            cls, float(limit), rtf, seed, params, gui, record, progress, ros2_clock, engine
         )
     report.params = params
     return report
 
 
+def step_hooks_of(scenario: Any) -> tuple[Any, Any]:
+    """The scenario's ``before_step`` and ``after_step`` methods where its class overrides
+    :class:`evclock_sims.Scenario`'s (which do nothing), else None for each: a scenario
+    without hooks keeps the fast stepping loop."""
+    try:
+        from evclock_sims import Scenario
+    except ImportError:  # a scenario class that does not derive from evclock_sims.Scenario
+        return None, None
+    found = []
+    for name in ("before_step", "after_step"):
+        method = getattr(type(scenario), name, None)
+        overridden = method is not None and method is not getattr(Scenario, name, None)
+        found.append(getattr(scenario, name) if overridden else None)
+    return found[0], found[1]
+
+
+def install_step_hooks(scenario: Any, source: Any) -> None:
+    """Register the scenario's per-physics-step hooks (see :func:`step_hooks_of`) on the
+    stepping ``source``: ``before_step`` before every physics step, ``after_step`` after."""
+    before, after = step_hooks_of(scenario)
+    if before is not None:
+        source.add_step_hook(before, "before")
+    if after is not None:
+        source.add_step_hook(after, "after")
+
+
 def _set_up(cls: type[Any], client: int, seed: int, output: list[str]) -> Any:
     with captured_native_stdout(output):
         return cls(client, seed)
+
+
+def _error_report(
+    cls: type[Any], seed: int, mode: str, limit: float, output: list[str], exc: BaseException
+) -> RunReport:
+    """The report of a run whose scenario raised while setting up its world."""
+    return RunReport(
+        scenario=cls.name,
+        seed=seed,
+        mode=mode,
+        success=False,
+        finished=False,
+        sim_time_s=0.0,
+        wall_time_s=0.0,
+        achieved_rtf=None,
+        summary={},
+        loops=[],
+        final_state=[],
+        until_s=limit,
+        setup_output=output,
+        error=describe_exception(exc),
+        error_where=f"setting up the world, in {exception_origin(exc)}",
+        traceback=_traceback_text(exc),
+    )
+
+
+class _Outcome:
+    """How the controllers' run ended: finished, cut short, raised, or interrupted."""
+
+    def __init__(self) -> None:
+        self.finished = True
+        self.interrupted = False
+        self.error: BaseException | None = None
+
+    async def run(self, scenario: Any, clk: Clock, limit: float) -> None:
+        """Run ``scenario`` for at most ``limit`` seconds, recording how it ended."""
+        timeout = asyncio.timeout(limit)
+        try:
+            async with timeout:
+                await scenario.run(clk)
+        except TimeoutError as exc:
+            if timeout.expired():
+                self.finished = False
+            else:
+                self.error = exc
+        except asyncio.CancelledError:
+            # Ctrl-C: asyncio.Runner cancels the main task; the report says what ran so far.
+            self.interrupted = True
+        except Exception as exc:
+            self.error = exc
+
+    def apply(self, report: RunReport) -> RunReport:
+        """Put the error or the interruption into ``report``."""
+        report.interrupted = self.interrupted
+        if self.error is not None:
+            report.error = describe_exception(self.error)
+            report.error_where = f"running the controllers, in {exception_origin(self.error)}"
+            report.traceback = _traceback_text(self.error)
+        return report
 
 
 def _finish_progress(progress: Progress | None, task_id: Any, sim_s: float, cut: bool) -> None:
@@ -283,20 +464,31 @@ def _run_on_sim_time(
     record: Path | None,
     progress: Progress | None,
     ros2_clock: Ros2ClockOptions | None = None,
+    engine: str = "pybullet",
 ) -> RunReport:
     from evclock.ros2._cli import publishing
-    from evclock.sources import PyBulletTimeSource
 
     output: list[str] = []
     recorder: Recorder | None = None
-    source = PyBulletTimeSource.connect(gui=gui)
+    opened, world = open_engine(cls, engine, gui=gui)
+    source: Any = opened  # PyBullet's or MuJoCo's: a stepping source either way
     try:
-        scenario = _set_up(cls, source.client, seed, output)
-        if record is not None:
-            from evclock.tools._record import Recorder
+        scenario = _set_up(cls, world, seed, output)
+        if source is None:  # MuJoCo: the model exists once the scenario has built it
+            source = world.time_source()
+    except Exception as exc:
+        if source is not None:
+            source.close()
+        return _error_report(cls, seed, "sim", limit, output, exc)
+    except BaseException:
+        if source is not None:
+            source.close()
+        raise
+    install_step_hooks(scenario, source)
+    try:
+        from evclock.tools._record import open_recorder  # to --record and/or --foxglove
 
-            metadata = {"scenario": cls.name, "seed": seed, "params": params, "until_s": limit}
-            recorder = Recorder(record, {**metadata, "class": cls.__qualname__})
+        recorder = open_recorder(record, cls, seed, params, limit)
     except BaseException:
         source.close()
         raise
@@ -323,36 +515,36 @@ def _run_on_sim_time(
         shower = asyncio.create_task(show_progress(loop)) if progress else None
         wall0 = time.perf_counter()
         loop.achieved_rtf()
-        finished = True
+        outcome = _Outcome()
         try:
-            async with asyncio.timeout(limit):
-                await scenario.run(clk)
-        except TimeoutError:
-            finished = False
+            await outcome.run(scenario, clk, limit)
         finally:
             if shower is not None:
                 shower.cancel()
+        finished = outcome.finished and outcome.error is None and not outcome.interrupted
         wall_s = time.perf_counter() - wall0
         sim_s = loop.time()
         if recorder is not None:
             recorder.observe()
         _finish_progress(progress, task_id, sim_s, not finished)
         achieved = sim_s / wall_s if wall_s > 0 else None
-        return RunReport(
-            scenario=cls.name,
-            seed=seed,
-            mode="sim",
-            success=scenario.success(),
-            finished=finished,
-            sim_time_s=sim_s,
-            wall_time_s=wall_s,
-            achieved_rtf=achieved,
-            summary=scenario.summary(),
-            loops=_loop_reports(clk),
-            final_state=scenario.state_vector(),
-            stamps=diagnostics_report(),
-            until_s=limit,
-            setup_output=output,
+        return outcome.apply(
+            RunReport(
+                scenario=cls.name,
+                seed=seed,
+                mode="sim",
+                success=outcome.error is None and scenario.success(),
+                finished=finished,
+                sim_time_s=sim_s,
+                wall_time_s=wall_s,
+                achieved_rtf=achieved,
+                summary=scenario.summary(),
+                loops=_loop_reports(clk),
+                final_state=scenario.state_vector(),
+                stamps=diagnostics_report(),
+                until_s=limit,
+                setup_output=output,
+            )
         )
 
     report: RunReport | None = None
@@ -372,21 +564,41 @@ def _outcome(report: RunReport) -> dict[str, Any]:
 
 
 def _run_on_wall_time(
-    cls: type[Any], limit: float, seed: int, gui: bool, progress: Progress | None
+    cls: type[Any],
+    limit: float,
+    seed: int,
+    gui: bool,
+    progress: Progress | None,
+    record: Path | None = None,
+    params: dict[str, ParamValue] | None = None,
 ) -> RunReport:
     import pybullet as p
+
+    from evclock.tools._record import open_recorder  # --record/--foxglove on wall time
 
     cid = p.connect(p.GUI if gui else p.DIRECT)
     output: list[str] = []
     try:
-        scenario = _set_up(cls, cid, seed, output)
+        try:
+            scenario = _set_up(cls, cid, seed, output)
+        except Exception as exc:
+            return _error_report(cls, seed, "wall", limit, output, exc)
         task_id = progress.add_task(cls.name, total=limit, rtf="1 (wall)") if progress else None
+        recorder = open_recorder(record, cls, seed, params or {}, limit, mode="wall")
         refresh_every = round(PHYSICS_HZ * _PROGRESS_PERIOD)
+
+        before, after = step_hooks_of(scenario)
 
         async def world() -> None:
             # The stand-in for real hardware: physics advances with the wall clock.
             async for tick in clock().rate(PHYSICS_HZ, name="world (physics)"):
+                if before is not None:
+                    before()
                 p.stepSimulation(physicsClientId=cid)
+                if after is not None:
+                    after()
+                if recorder is not None:
+                    recorder.observe()
                 if progress is not None and tick.index % refresh_every == 0:
                     elapsed = time.perf_counter() - wall0
                     progress.update(task_id, completed=min(elapsed, limit))  # type: ignore[arg-type]
@@ -394,39 +606,47 @@ def _run_on_wall_time(
 
         async def main() -> RunReport:
             clk = clock()
+            if recorder is not None:
+                recorder.attach(None, clk, scenario.state_vector, client=cid)
             start = clk.now().seconds
             physics = asyncio.create_task(world())
-            finished = True
+            outcome = _Outcome()
             try:
-                async with asyncio.timeout(limit):
-                    await scenario.run(clk)
-            except TimeoutError:
-                finished = False
+                await outcome.run(scenario, clk, limit)
             finally:
                 physics.cancel()
+            finished = outcome.finished and outcome.error is None and not outcome.interrupted
             wall_s = time.perf_counter() - wall0
             _finish_progress(progress, task_id, wall_s, not finished)
             summary = scenario.summary()
             if scenario.finished_at is not None:
                 summary["mission_time_s"] = scenario.finished_at - start
-            return RunReport(
-                scenario=cls.name,
-                seed=seed,
-                mode="wall",
-                success=scenario.success(),
-                finished=finished,
-                sim_time_s=wall_s,
-                wall_time_s=wall_s,
-                achieved_rtf=1.0,
-                summary=summary,
-                loops=_loop_reports(clk),
-                final_state=scenario.state_vector(),
-                stamps=diagnostics_report(),
-                until_s=limit,
-                setup_output=output,
+            return outcome.apply(
+                RunReport(
+                    scenario=cls.name,
+                    seed=seed,
+                    mode="wall",
+                    success=outcome.error is None and scenario.success(),
+                    finished=finished,
+                    sim_time_s=wall_s,
+                    wall_time_s=wall_s,
+                    achieved_rtf=1.0,
+                    summary=summary,
+                    loops=_loop_reports(clk),
+                    final_state=scenario.state_vector(),
+                    stamps=diagnostics_report(),
+                    until_s=limit,
+                    setup_output=output,
+                )
             )
 
         wall0 = time.perf_counter()
-        return evclock_run(main(), use_sim_time=False)
+        report: RunReport | None = None
+        try:
+            report = evclock_run(main(), use_sim_time=False)
+        finally:
+            if recorder is not None:
+                recorder.close(None if report is None else _outcome(report))
+        return report
     finally:
         p.disconnect(cid)

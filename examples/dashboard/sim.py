@@ -85,6 +85,41 @@ class Sample:
     """Mean lateness of each loop's ticks since the previous sample (None: no tick)."""
 
 
+@dataclasses.dataclass(slots=True)
+class LoopTotals:
+    """A loop's figures over the whole run, across episode resets (each episode's world has
+    new rate loops of the same names: their statistics are added here when it ends)."""
+
+    episodes: int = 0
+    ticks: int = 0
+    missed: int = 0
+    total_lateness_ns: int = 0
+    max_lateness_ns: int = 0
+
+    def add(self, rate: Rate) -> None:
+        """Add an ended episode's loop."""
+        stats = rate.stats
+        self.episodes += 1
+        self.ticks += stats.ticks
+        self.missed += stats.missed
+        self.total_lateness_ns += stats.total_lateness_ns
+        self.max_lateness_ns = max(self.max_lateness_ns, stats.max_lateness_ns)
+
+    def with_current(self, rate: Rate | None) -> dict[str, Any]:
+        """These totals plus the running episode's ``rate``, for JSON."""
+        now = LoopTotals(*dataclasses.astuple(self))
+        if rate is not None:
+            now.add(rate)
+        mean = now.total_lateness_ns / now.ticks / 1e9 if now.ticks else 0.0
+        return {
+            "episodes": now.episodes,
+            "ticks": now.ticks,
+            "missed": now.missed,
+            "mean_lateness_s": mean,
+            "max_lateness_s": now.max_lateness_ns / 1e9,
+        }
+
+
 @dataclasses.dataclass(frozen=True, slots=True)
 class StepResult:
     """What ``POST /api/step`` reports besides the state."""
@@ -157,6 +192,8 @@ class SimService:
         #: The loops of episodes that ended since the last sample: their last ticks (or, for a
         #: short episode, all of them) still go into the next sample, under their names.
         self._ended_rates: list[Rate] = []
+        #: Each loop's figures over the episodes that ended (by name, first-seen order).
+        self._totals: dict[str, LoopTotals] = {}
         self._achieved_rtf: float | None = None
         self._steps_before_reset = 0
         self._step_lock = asyncio.Lock()
@@ -256,7 +293,10 @@ class SimService:
                 return  # the physics keeps stepping; the controllers are done
             await clock.sleep(self.config.episode_gap)
             # Reset the world at the current time (no time jump), then load the next one.
-            self._ended_rates.extend(self.current_rates())  # before the next ones replace them
+            ended = self.current_rates()  # before the next ones replace them
+            self._ended_rates.extend(ended)
+            for rate in ended:
+                self._totals.setdefault(rate.name, LoopTotals()).add(rate)
             self._steps_before_reset += self.source.step_index
             self.source.reset_simulation(start=clock.now())
             seed = episode.seed + 1
@@ -332,7 +372,10 @@ class SimService:
             counts[rate] = (ticks, total)
         self._last_counts = {rate: counts[rate] for rate in current}  # the ended ones are done
         lateness = {name: ns / n / 1e6 if n else None for name, (n, ns) in new.items()}
-        sample = Sample(time.time(), driver.now().seconds, self._achieved_rtf, driver.rtf, lateness)
+        # Paused, sim time stands still: there is no real-time factor to show (the driver's
+        # measure would decay towards 0 over its window), only "paused".
+        achieved = None if driver.paused else self._achieved_rtf
+        sample = Sample(time.time(), driver.now().seconds, achieved, driver.rtf, lateness)
         self._history.append(sample)
         self._series.update(dict.fromkeys(lateness))
 
@@ -368,12 +411,23 @@ class SimService:
             "paused": driver.paused,
             "stepping": self._stepping_info(),
             "rtf": driver.rtf,
-            "achieved_rtf": finite(self._achieved_rtf),
+            "achieved_rtf": None if driver.paused else finite(self._achieved_rtf),
             "lockstep_overruns": driver.lockstep_overruns,
-            "loops": [_rate_info(rate) for rate in self.current_rates()],
+            "loops": self._loops_info(),
             "episode": episode.as_dict(now.seconds) if episode is not None else None,
             "finished_episodes": [e.as_dict(now.seconds) for e in reversed(self._finished)],
         }
+
+    def _loops_info(self) -> list[dict[str, Any]]:
+        """The running episode's loops: their own figures, and under ``run`` their figures
+        over the whole run, every episode's loop of the same name included."""
+        return [
+            {
+                **_rate_info(rate),
+                "run": self._totals.get(rate.name, LoopTotals()).with_current(rate),
+            }
+            for rate in self.current_rates()
+        ]
 
     # ------------------------------------------------------------------ controls
 

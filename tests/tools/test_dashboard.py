@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import queue
 import re
@@ -483,6 +484,48 @@ def test_loop_statistics_and_lateness_survive_episode_resets(
         time.sleep(0.02)
     assert set(history["lateness_ms"]) == {"joint_control", "planner"}
     assert all(0 <= late < 1000 / 240 for late in recent)  # under one physics step, in ms
+
+
+def test_each_loop_keeps_its_figures_over_the_whole_run(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client = make_client(paused=False, rtf=None)
+    current = wait_for(
+        lambda s: s["episode"]["number"] >= 3 and s["loops"] and s["loops"][0]["ticks"] > 1,
+        client,
+        "the third episode, with its loops ticking",
+    )
+    number = current["episode"]["number"]
+    ended = [e for e in current["finished_episodes"] if e["number"] < number]
+    assert len(ended) == number - 1
+    for loop in current["loops"]:
+        run = loop["run"]
+        assert run["episodes"] == number  # every episode had this loop, the running one too
+        # The ended episodes' ticks are kept: one per period of each, start included (+-1:
+        # the mission's last tick and the loop's at the same time run in either order).
+        earlier = sum(math.floor(e["duration_s"] * loop["hz"]) + 1 for e in ended)
+        assert abs(run["ticks"] - loop["ticks"] - earlier) <= len(ended)
+        assert run["missed"] >= loop["missed"]
+        assert run["max_lateness_s"] >= loop["max_lateness_s"]
+        assert 0 <= run["mean_lateness_s"] <= run["max_lateness_s"]
+
+
+def test_no_real_time_factor_while_paused(make_client: Callable[..., httpx.Client]) -> None:
+    client = make_client(paused=False, rtf=None)
+    wait_for(lambda s: s["achieved_rtf"] is not None, client, "an achieved real-time factor")
+    assert post(client, "/api/pause", {}).status_code == 200
+    let_the_server_run(client, 3)
+    assert state(client)["achieved_rtf"] is None
+    history = client.get("/api/history").json()
+    # The samples taken since the pause (sim time no longer moves) have no rtf.
+    paused_at = history["sim_time_s"][-1]
+    paused = [
+        rtf
+        for sim, rtf in zip(history["sim_time_s"], history["achieved_rtf"], strict=True)
+        if sim == paused_at
+    ]
+    assert len(paused) >= 2
+    assert paused[1:] == [None] * (len(paused) - 1)
 
 
 # -------------------------------------------- step: answers when done, or says why

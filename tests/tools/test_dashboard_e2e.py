@@ -156,9 +156,10 @@ def test_dashboard_controls_sim_time_end_to_end(page: Page) -> None:
     expect(page.locator("#loops tbody tr")).to_have_count(2)
     expect(page.locator("#loops tbody tr[data-loop='joint_control']")).to_be_visible()
 
-    # The plots are drawn and take new samples.
+    # The plots are drawn over sim time and take new samples.
     for plot in ("#rtf-plot", "#lateness-plot"):
         expect(page.locator(f"{plot} canvas")).to_have_count(1)
+        expect(page.locator(f"{plot} .u-legend .u-series").first).to_contain_text("sim time (s)")
     samples = int(page.locator("#rtf-plot").get_attribute("data-samples") or 0)
     page.wait_for_function(
         f"() => Number(document.getElementById('rtf-plot').dataset.samples) > {samples}"
@@ -171,6 +172,7 @@ def test_dashboard_controls_sim_time_end_to_end(page: Page) -> None:
     paused_at = physics_steps(page)
     wait_for_renders(page, 3)
     assert physics_steps(page) == paused_at
+    expect(page.locator("#achieved-rtf")).to_have_text("-")  # no real-time factor paused
 
     # Paused, the scene shows the paused world and renders no new frame.
     page.wait_for_function(

@@ -53,9 +53,19 @@ def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object
     assert set(topics) == {
         "/evclock/clock",
         "/evclock/state",
+        "/evclock/joints",
+        "/evclock/transforms",
+        "/evclock/scene",
         "/evclock/loop/control",
         "/evclock/loop/logger",
         "/shuttle/error",
+    }
+    # A user channel's schema names its fields and their types (inferred from the message).
+    user_schema = json.loads(summary.schemas[topics["/shuttle/error"].schema_id].data)
+    assert user_schema == {
+        "title": "shuttle.error",
+        "type": "object",
+        "properties": {"error_m": {"type": "number"}, "target_m": {"type": "number"}},
     }
     assert topics["/evclock/clock"].metadata == {"deterministic": "false"}
     assert topics["/evclock/loop/control"].metadata == {"deterministic": "true"}
@@ -99,7 +109,9 @@ def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.tools.R
     assert plain.final_state == report.final_state
     assert plain.sim_time_s == report.sim_time_s
     last_state = evclock.tools.read_trace(path).topic("/evclock/state")[-1]
-    assert last_state.data["state"] == report.final_state
+    # Named fields, the same numbers in the same order as the scenario's state vector.
+    assert list(last_state.data) == ["physics"]  # the cart-pole URDF's robot name
+    assert _flatten(last_state.data) == report.final_state
     assert last_state.time_ns / 1e9 == report.sim_time_s
 
 
@@ -132,7 +144,7 @@ def test_trace_diff_names_the_first_divergence(
     # difference is the cart's state in the sample at 0.05 s (ticks agree: same schedule).
     assert divergence.time_s == 0.05
     assert divergence.topic == "/evclock/state"
-    assert divergence.detail.startswith("state[")
+    assert divergence.detail.startswith("physics.joints.slider_to_cart.position: ")
     assert " != " in divergence.detail
     result = runner.invoke(app, ["trace", "diff", str(path), str(other)])
     assert result.exit_code == 1
@@ -181,7 +193,10 @@ def test_user_channels_are_checked() -> None:
     assert "topic '/evclock/state' is reserved for evclock's own channels" in str(info.value)
     with pytest.raises(evclock.InvalidTypeError) as type_info:
         evclock.tools.record("/mine", [1, 2])  # type: ignore[arg-type]
-    assert "record() needs a mapping (a JSON object) as message, got list" in str(type_info.value)
+    assert (
+        "record() needs a mapping (a JSON object) or a dataclass instance as message, got list"
+        in str(type_info.value)
+    )
     evclock.tools.record("/mine", {"x": 1})  # no recording: nothing to write, no error
 
 
@@ -190,6 +205,13 @@ def test_recording_without_mcap_names_the_extra(monkeypatch: pytest.MonkeyPatch)
     result = runner.invoke(app, ["run", SHUTTLE, "--record", "x.mcap", "--quiet"])
     assert result.exit_code == 2
     assert "recording needs the mcap package: pip install 'evclock[record]'" in result.output
+
+
+def _flatten(value: object) -> list[float]:
+    if isinstance(value, dict):
+        return [x for item in value.values() for x in _flatten(item)]
+    assert isinstance(value, float)
+    return [value]
 
 
 def _pixels_of(image: np.ndarray, color: str) -> int:
@@ -228,13 +250,3 @@ def test_plot_refuses_a_recording_without_loops(tmp_path: Path) -> None:
     result = runner.invoke(app, ["plot", str(empty), "-o", str(tmp_path / "x.png")])
     assert result.exit_code == 2
     assert "records no rate loop: nothing to plot" in " ".join(result.output.split())
-
-
-@pytest.mark.pybullet
-@needs_record
-def test_recording_needs_sim_time(tmp_path: Path) -> None:
-    result = runner.invoke(
-        app, ["run", SHUTTLE, "--wall", "--record", str(tmp_path / "w.mcap"), "--quiet"]
-    )
-    assert result.exit_code == 2
-    assert "error: --record needs sim time: drop --wall to record a run" in result.output

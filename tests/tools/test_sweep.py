@@ -81,12 +81,24 @@ def fragile(tmp_path: Path) -> str:
 
 def test_parse_seeds() -> None:
     assert parse_seeds("0:4") == [0, 1, 2, 3]
-    assert parse_seeds("7") == [7]
+    assert parse_seeds("7") == [7]  # --seed 7: that seed
+    assert parse_seeds("7", count=True) == [0, 1, 2, 3, 4, 5, 6]  # --seeds 7: seven seeds
     assert parse_seeds("3,1,2") == [3, 1, 2]
-    for bad in ("4:2", "a:b", "1,1", ""):
+    assert parse_seeds("3,1,2", count=True) == [3, 1, 2]
+    assert parse_seeds("2:4", count=True) == [2, 3]
+    for bad in ("4:2", "a:b", "1,1", "", "-1:2"):
         with pytest.raises(evclock.InvalidArgumentError) as info:
             parse_seeds(bad)
         assert "--seeds" in str(info.value)
+    with pytest.raises(evclock.InvalidArgumentError) as info:
+        parse_seeds("0", count=True)
+    assert str(info.value) == (
+        "--seeds takes N (that many seeds, 0 to N-1), START:STOP (STOP excluded, STOP > START) "
+        "or S1,S2,..., got '0'"
+    )
+    with pytest.raises(evclock.InvalidArgumentError) as info:
+        parse_seeds("-5", option="--seed")
+    assert str(info.value) == "--seed: a seed is a whole number from 0 to 4294967295, got -5"
 
 
 def test_plan_is_every_combination_times_every_seed() -> None:
@@ -107,22 +119,38 @@ def test_quantiles() -> None:
     assert quantiles([5.0]) == dict.fromkeys(("p0", "p5", "p50", "p95", "p100"), 5.0)
 
 
+BAD_SWEEPS = [
+    (["--workers", "0"], "error: --workers must be at least 1, got 0"),
+    (["--backend", "dask"], "error: --backend takes local or ray, got 'dask'"),
+    (["--address", "1.2.3.4:6379"], "error: --address is the Ray cluster's"),
+    (["--seeds", "5:5"], "error: --seeds takes N (that many seeds, 0 to N-1), START:STOP"),
+    (["--seed", "-5"], "error: --seed: a seed is a whole number from 0 to 4294967295, got -5"),
+    (["--seed", "1", "--seeds", "2"], "error: give --seeds N (how many seeds) or --seed S"),
+    (["--param", "nope=1"], "error: scenario 'shuttle' has no parameter 'nope'"),
+    (["--param", "gain=x"], "error: parameter gain takes a finite float"),
+    (["--json", "/no/such/dir/x.json"], "error: --json '/no/such/dir/x.json': the directory"),
+    (["--csv", "/no/such/dir/x.csv"], "error: --csv '/no/such/dir/x.csv': the directory"),
+    (["--until", "-1"], "error: --until must be a positive number of seconds, got -1.0"),
+    (["--until", "nan"], "error: --until must be a positive number of seconds, got nan"),
+    (["--run-timeout", "nan"], "error: --run-timeout must be a positive number of wall seconds"),
+    (["--best", "median:x"], "error: --best takes METRIC, min:METRIC or max:METRIC"),
+    (["--plot-metric", "x"], "error: --plot-metric names what --plot draws: add --plot"),
+    (["--workers", "two"], "error: Invalid value for '--workers'"),
+]
+
+
 @pytest.mark.pybullet
-@pytest.mark.parametrize(
-    ("args", "message"),
-    [
-        (["--workers", "0"], "error: --workers must be at least 1, got 0"),
-        (["--backend", "dask"], "error: --backend takes local or ray, got 'dask'"),
-        (["--address", "1.2.3.4:6379"], "error: --address is the Ray cluster's"),
-        (["--seeds", "5:5"], "error: --seeds takes START:STOP"),
-        (["--param", "nope=1"], "error: scenario 'shuttle' has no parameter 'nope'"),
-        (["--json", "/no/such/dir/x.json"], "error: --json '/no/such/dir/x.json': the directory"),
-    ],
-)
-def test_bad_sweep_input_exits_2(args: list[str], message: str) -> None:
-    result = runner.invoke(app, ["sweep", SHUTTLE, "--quiet", *args])
-    assert result.exit_code == 2
-    assert message in " ".join(result.output.split())
+def test_bad_sweep_input_exits_2_before_any_worker_starts(tmp_path: Path) -> None:
+    """Through the real command: one error line on stderr, status 2, nothing run."""
+    for args, message in BAD_SWEEPS:
+        proc = subprocess.run(
+            [sys.executable, "-m", "evclock", "sweep", SHUTTLE, "--quiet", *args],
+            capture_output=True, text=True, timeout=TIMEOUT, check=False, cwd=tmp_path,
+        )  # fmt: skip
+        assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
+        assert message in " ".join(proc.stderr.split()), (args, proc.stderr)
+        assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
+        assert proc.stdout == "", proc.stdout  # no run, no table
 
 
 @pytest.mark.pybullet
@@ -181,7 +209,7 @@ def test_a_crash_and_an_exception_are_failed_rows(fragile: str, tmp_path: Path) 
     result = runner.invoke(
         app, ["sweep", fragile, "--seeds", "0:4", "--workers", "2", "--json", str(out), "--quiet"]
     )
-    assert result.exit_code == 1, result.output
+    assert result.exit_code == 4, result.output  # a run raised
     rows = _rows_by_seed(out)
     assert [rows[s]["status"] for s in range(4)] == ["success", "error", "error", "success"]
     assert rows[1]["error"] == "worker process died without a result (killed by signal 9)"
@@ -255,7 +283,7 @@ def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
         capture_output=True, text=True, timeout=TIMEOUT, check=False,
         env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"},
     )  # fmt: skip
-    assert proc.returncode == 1, proc.stdout + proc.stderr
+    assert proc.returncode == 4, proc.stdout + proc.stderr
     rows = _rows_by_seed(out)
     assert [rows[s]["status"] for s in range(3)] == ["success", "error", "error"]
     assert str(rows[1]["error"]).startswith("ray task failed: ")
@@ -276,7 +304,7 @@ def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_pat
         ["sweep", fragile, "--seeds", "0,5", "--param", f"marker_dir={markers}",
          "--run-timeout", "10", "--workers", "2", "--json", str(out), "--quiet"],
     )  # fmt: skip
-    assert result.exit_code == 1, result.output
+    assert result.exit_code == 4, result.output
     rows = _rows_by_seed(out)
     assert rows[0]["status"] == "success"
     assert rows[5]["error"] == "timed out after 10 s of wall time (--run-timeout); stopped"

@@ -61,7 +61,8 @@ function renderLoops(loops) {
       const cells = [
         loop.name, loop.hz, loop.policy, loop.ticks, loop.missed,
         ms(loop.mean_lateness_s), ms(loop.p50_lateness_s), ms(loop.p99_lateness_s),
-        ms(loop.max_lateness_s),
+        ms(loop.max_lateness_s), loop.run.ticks, loop.run.missed,
+        ms(loop.run.mean_lateness_s), ms(loop.run.max_lateness_s),
       ];
       for (const value of cells) {
         const cell = document.createElement("td");
@@ -123,8 +124,9 @@ function updateButtons(state) {
 
 // ---------------------------------------------------------------- plots
 
+// x: sim seconds (the history's sim_time_s: it never goes back, episode resets included).
 function makePlot(element, labels, yLabel) {
-  const series = [{}];
+  const series = [{ label: "sim time (s)", value: (_u, v) => (v == null ? "-" : v.toFixed(3)) }];
   labels.forEach((label, i) => {
     series.push({
       label,
@@ -136,8 +138,8 @@ function makePlot(element, labels, yLabel) {
   const options = {
     width: Math.max(element.clientWidth, 320),
     height: 240,
-    scales: { x: { time: true } },
-    axes: [{}, { label: yLabel }],
+    scales: { x: { time: false } },
+    axes: [{ label: "sim time (s)" }, { label: yLabel }],
     series,
   };
   element.replaceChildren();
@@ -147,7 +149,7 @@ function makePlot(element, labels, yLabel) {
 function updatePlots(history) {
   const rtfElement = $("rtf-plot");
   if (!plots.rtf) plots.rtf = makePlot(rtfElement, ["achieved", "requested"], "sim s / wall s");
-  plots.rtf.setData([history.wall_s, history.achieved_rtf, history.requested_rtf]);
+  plots.rtf.setData([history.sim_time_s, history.achieved_rtf, history.requested_rtf]);
   rtfElement.dataset.samples = String(history.wall_s.length);
 
   const names = Object.keys(history.lateness_ms);
@@ -157,7 +159,7 @@ function updatePlots(history) {
     plots.lateness = makePlot(latenessElement, names, "ms");
     plots.latenessNames = names.join("\u0000");
   }
-  plots.lateness.setData([history.wall_s, ...names.map((name) => history.lateness_ms[name])]);
+  plots.lateness.setData([history.sim_time_s, ...names.map((name) => history.lateness_ms[name])]);
   latenessElement.dataset.samples = String(history.wall_s.length);
 }
 
