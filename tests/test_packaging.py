@@ -25,7 +25,15 @@ import pytest
 ROOT = Path(os.environ.get("EVCLOCK_SOURCE_TREE") or Path(__file__).resolve().parent.parent)
 PACKAGES = ("evclock", "evclock_sims")
 # Files the package needs at run time besides its modules.
-DATA_FILES = ("evclock/py.typed",)
+DATA_FILES = (
+    "evclock/py.typed",
+    "evclock/tools/foxglove_layout.json",  # the saved Foxglove layout (evclock trace layout)
+    # The robot models of the MuJoCo scenarios, used where pybullet_data is absent.
+    "evclock_sims/models/LICENSE.txt",
+    "evclock_sims/models/cartpole.urdf",
+    "evclock_sims/models/kuka_iiwa/model.urdf",
+    *(f"evclock_sims/models/kuka_iiwa/meshes/link_{i}.stl" for i in range(8)),
+)
 
 
 def source_files() -> set[str]:

@@ -42,7 +42,11 @@ FENCE = re.compile(
     r"^(?:<!-- test: (?P<note>[^\n]*?) -->\n)?```(?P<lang>\w*)\n(?P<code>.*?)^```[ \t]*$",
     re.M | re.S,
 )
-NEEDS_PYBULLET = re.compile(r"pybullet|PyBulletTimeSource|evclock_sims|evclock (run|sweep) ")
+# (evclock_sims's MuJoCo helpers need no PyBullet.)
+NEEDS_PYBULLET = re.compile(
+    r"pybullet|PyBulletTimeSource|evclock (run|sweep) "
+    r"|evclock_sims(?! import (?:model_path|urdf_to_mujoco|MuJoCoWorld)\b)"
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -321,10 +325,16 @@ def test_set_up_commands_fit_a_user_and_match_ci() -> None:
     the test extra itself and is what .ci/run runs on every Python (there against the wheel)."""
     text = README.read_text()
     setup = section(text, "## Set-up", "## Quickstart")
-    main_job, tests = (block.strip() for block in re.findall(r"```bash\n(.*?)```", setup, re.S))
+    blocks = (block.strip() for block in re.findall(r"```bash\n(.*?)```", setup, re.S))
+    main_job, mujoco_job, tests = blocks
     assert main_job == (
         'python3 -m venv .venv && .venv/bin/pip install -e ".[pybullet]" '
         "&& .venv/bin/evclock run kuka"
+    )
+    # Python 3.12 and 3.13 (no PyBullet wheels): the same job on MuJoCo, from wheels.
+    assert mujoco_job == (
+        'python3 -m venv .venv && .venv/bin/pip install -e ".[mujoco]" '
+        "&& .venv/bin/evclock run kuka --engine mujoco"
     )
     assert tests == '.venv/bin/pip install -e ".[test]" && .venv/bin/python -m pytest'
     ci = (README.parent / ".ci" / "run").read_text()
