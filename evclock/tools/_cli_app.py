@@ -169,8 +169,9 @@ def _format_value(value: object) -> str:
 def render_report(report: RunReport, console: Console) -> None:
     """Print which evclock ran what, the per-loop table, the scenario summary and the
     verdict."""
+    engine = "" if report.engine == "pybullet" else f" on {report.engine}"
     console.print(
-        f"evclock {report.evclock_version}: {report.scenario}, seed {report.seed}, "
+        f"evclock {report.evclock_version}: {report.scenario}{engine}, seed {report.seed}, "
         f"{report.mode} time",
         soft_wrap=True,
         highlight=False,

@@ -93,6 +93,7 @@ class RunReport:
     :ivar error_where: where it was raised (phase, function, file and line), or None.
     :ivar traceback: the exception's full traceback, or None.
     :ivar interrupted: whether the run was stopped by Ctrl-C (the report is partial).
+    :ivar engine: the physics engine that ran the world (``pybullet`` or ``mujoco``).
     """
 
     scenario: str
@@ -122,6 +123,8 @@ class RunReport:
     """The full traceback of that exception."""
     interrupted: bool = False
     """Whether the run was stopped by Ctrl-C before it ended (the figures are partial)."""
+    engine: str = "pybullet"
+    """The physics engine that ran the world: ``pybullet`` or ``mujoco``."""
 
     @property
     def verdict(self) -> str:
@@ -533,6 +536,7 @@ def _run_on_sim_time(
                 scenario=cls.name,
                 seed=seed,
                 mode="sim",
+                engine=engine,
                 success=outcome.error is None and scenario.success(),
                 finished=finished,
                 sim_time_s=sim_s,

@@ -340,7 +340,9 @@ def test_evclock_run_engine_mujoco_runs_without_pybullet(name: str, tmp_path: Pa
     report = json.loads(out.read_text())
     assert report["verdict"] == "success"
     assert report["scenario"] == name
+    assert report["engine"] == "mujoco"
     assert report["summary"]["success"] is True
+    assert f": {name} on mujoco, seed 0, sim time" in result.stdout.splitlines()[0]
 
 
 @needs_pybullet
