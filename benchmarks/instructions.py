@@ -1,43 +1,63 @@
-"""Instruction counts per wakeup (callgrind): the simulation loop's cost, exactly.
+"""Instructions per wake-up (callgrind) against floors measured in the same run, with wall ratios.
+
+One command prints every workload's table, a summary with ratios and the targets, each
+marked met or not met::
+
+    .venv/bin/python benchmarks/instructions.py            # about 15 min on 2 loaded cores
 
 The wall clock on a shared virtual machine swings by tens of percent; instructions executed
-do not. Each variant runs in its own process under ``valgrind --tool=callgrind`` twice - with
-the full workload and with an empty one (the same tasks, no waits) - and the difference,
-divided by the number of wakeups, is its cost per wakeup: start-up and task creation cancel
-out. Baselines are measured in the same run and every figure is printed as a ratio to them.
+do not. Method:
 
-Workloads (seeded; durations drawn once as integer nanoseconds, passed as float seconds):
+* **Plans first.** Every input (seeded durations as float seconds, rates, tick counts) is
+  built before the measured part: a process builds the plan of the *larger* repetition
+  count, then runs the workload on its first ``count`` entries; under callgrind both
+  processes of a variant build the very same plan, so its cost cancels out; wall time is
+  taken around the workload alone (``time.perf_counter``).
+* **Steady state.** Each variant runs under ``valgrind --tool=callgrind`` at two repetition
+  counts (``--sleeps`` and half of it, ...); (instructions of the larger - of the smaller)
+  / (wake-ups of the larger - of the smaller) is its cost per wake-up: start-up, imports,
+  plan, task creation, the first wait and the exit all cancel out.
+* **Durations at nanosecond granularity** by default (seeded integers in [1 ms, 10 ms],
+  almost every deadline distinct); whole-millisecond durations, where deadlines coincide,
+  are their own workload (``coincident``).
+* **Floors and peers in the same run**, each in its idiomatic form (see ``_peers.py``):
+  a bare ``asyncio.sleep(0)`` task switch per wake-up on a stock loop; the least a
+  future-based sleep can cost; SimPy with an event per waiter; for timeouts, the same
+  workload on stock asyncio with instant time (a loop subclass whose ``time()`` jumps to
+  its earliest timer).
+* **Wall time**: after the callgrind runs, each variant runs in plain processes at
+  ``--wall-scale`` times both counts, interleaved round by round (``--wall-rounds``); the
+  fastest run of each count is kept and the per-wake-up difference is reported as a ratio
+  to SimPy's (above 1: slower than SimPy). On a loaded machine wall ratios are indicative;
+  the instruction ratios are the figures.
+* **String-hash seed**: every process runs with ``PYTHONHASHSEED=0`` (a random seed changes
+  dict layouts and so what Python code costs, by up to 3% per KUKA step); the KUKA
+  comparison, whose targets are a few percent apart, is counted under seeds
+  0 .. ``--hash-seeds``-1 and reported per seed and as the mean of the ratios.
 
-* ``fanout``: ``--tasks`` tasks x ``--sleeps`` sleeps of random durations in [1 ms, 10 ms]:
-  ``clock.sleep`` and ``asyncio.sleep`` on the sim loop, SimPy's ``env.timeout`` and a
-  bare ``asyncio.sleep(0)`` task switch on a stock loop (the floor of any asyncio scheduler);
-* ``timeouts``: ``--tasks`` tasks x ``--waits`` waits that always time out -
-  ``asyncio.timeout(d)`` around an ``Event`` never set - against SimPy's
-  ``never | env.timeout(d)`` on the same plan;
-* ``scale``: ``clock.sleep`` per wakeup with ``--big`` concurrent sleepers vs ``--tasks``;
+Workloads (``--only``, repeatable; default: all but ``scale``):
+
+* ``fanout``: ``--tasks`` tasks x ``--sleeps`` sleeps of ns-granular durations;
+* ``coincident``: the same with whole-millisecond durations (1-10 ms);
+* ``rates``: ``--loops`` rate loops at seeded rates in [10 Hz, 500 Hz] (deadlines almost
+  never shared) for ``--rate-ms`` of sim time; ``rates-shared``: rates from 50, 100, 200,
+  250 and 500 Hz (deadlines shared);
+* ``timeouts``: ``--tasks`` tasks x ``--waits`` waits that time out (``asyncio.timeout`` and
+  ``asyncio.wait_for`` around an ``Event`` of the task's own, never set);
 * ``kuka``: per physics step, the KUKA controllers of ``kuka_throughput.py`` as evclock rate
   loops against the same controllers in a hand-written synchronous loop (final states
-  bit-identical), at 100 Hz and at 240 Hz, under ``--hash-seeds`` string-hash seeds.
+  asserted bit-identical), controller at 100 Hz and at 240 Hz;
+* ``scale``: ``clock.sleep`` per wake-up with ``--big`` concurrent sleepers vs ``--tasks``.
 
-Every process runs with one string-hash seed (``PYTHONHASHSEED``): a random one changes dict
-layouts and so what the Python code costs (the synchronous KUKA loop's cost per step moved by
-3% across seeds); with one seed two runs agree to one instruction in a million. A figure with
-one seed is that of one layout, so the KUKA comparison, whose targets are a few percent
-apart, is counted under seeds 0 .. N-1 and reported per seed and as the mean of the ratios.
-
-Run: ``python benchmarks/instructions.py [--tasks 1000 --sleeps 300 --waits 100 --big 100000]``
-(needs valgrind; a run takes minutes: each process runs about 50x slower under callgrind).
-Also ``python benchmarks/instructions.py --variant NAME --count N`` runs one variant
-without valgrind (what the harness runs under it).
+``--variant NAME --workload W --count N ...`` runs one variant without valgrind (what the
+harness runs, under valgrind or not).
 """
 
 from __future__ import annotations
 
 import argparse
-import asyncio
+import concurrent.futures
 import functools
-import heapq
-import itertools
 import math
 import os
 import random
@@ -45,616 +65,662 @@ import re
 import statistics
 import subprocess
 import sys
+import tempfile
 import time
-import types
-from collections.abc import Callable, Coroutine, Generator, Sequence
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
+
+import _peers as peers
 
 MIN_NS = 1_000_000
 MAX_NS = 10_000_000
-#: Plain (wall-time) runs of each process; the fastest is kept.
-WALL_REPEAT = 3
+SHARED_RATES = (50.0, 100.0, 200.0, 250.0, 500.0)
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+# ------------------------------------------------------------------------------ plans
 
 
-def plan(tasks: int, count: int, seed: int) -> list[list[float]]:
-    """``count`` seeded durations per task, in float seconds (drawn as integer ns)."""
+def sleep_plan(tasks: int, count: int, seed: int, whole_ms: bool = False) -> peers.Rows:
+    """``count`` seeded durations per task in float seconds: integer ns in [1 ms, 10 ms], or
+    whole milliseconds (1-10) with ``whole_ms``."""
     rng = random.Random(seed)
+    if whole_ms:
+        return [[rng.randint(1, 10) / 1e3 for _ in range(count)] for _ in range(tasks)]
     return [[rng.randint(MIN_NS, MAX_NS) / 1e9 for _ in range(count)] for _ in range(tasks)]
 
 
-# ------------------------------------------------------------------------------ variants
-
-
-def clock_sleep(rows: list[list[float]]) -> None:
-    import evclock
-
-    async def worker(clock: evclock.Clock, durations: list[float]) -> None:
-        sleep = clock.sleep
-        for d in durations:
-            await sleep(d)
-
-    async def main() -> None:
-        clock = evclock.clock()
-        await asyncio.gather(*(worker(clock, row) for row in rows))
-
-    evclock.run(main())
-
-
-def asyncio_sleep_sim(rows: list[list[float]]) -> None:
-    import evclock
-
-    async def worker(durations: list[float]) -> None:
-        sleep = asyncio.sleep
-        for d in durations:
-            await sleep(d)
-
-    async def main() -> None:
-        await asyncio.gather(*(worker(row) for row in rows))
-
-    evclock.run(main())
-
-
-def asyncio_sleep0(rows: list[list[float]]) -> None:
-    async def worker(durations: list[float]) -> None:
-        sleep = asyncio.sleep
-        for _ in durations:
-            await sleep(0)
-
-    async def main() -> None:
-        await asyncio.gather(*(worker(row) for row in rows))
-
-    asyncio.run(main())
-
-
-def _run_minimal(
-    loop: asyncio.AbstractEventLoop,
-    rows: list[list[float]],
-    worker: Callable[[list[float]], Coroutine[Any, Any, None]],
-    drive: Callable[[], None],
-) -> None:
-    """Start one ``worker`` task per row on ``loop``, let each reach its first wait, then
-    ``drive()`` them all to their end (the minimal variants' shared harness)."""
-
-    async def start() -> list[asyncio.Task[None]]:
-        tasks = [loop.create_task(worker(row)) for row in rows]
-        await asyncio.sleep(0)  # every task runs to its first wait
-        return tasks
-
-    try:
-        tasks = loop.run_until_complete(start())
-        # The tasks resume on ``loop`` as if it ran them (a future made with no loop= is
-        # bound to the running loop, as evclock's are).
-        asyncio.events._set_running_loop(loop)
-        try:
-            drive()
-        finally:
-            asyncio.events._set_running_loop(None)
-        for task in tasks:
-            task.result()  # each ran to its end
-    finally:
-        loop.close()
-
-
-def future_wake_minimal(rows: list[list[float]]) -> None:
-    """The least a future-based sleep can cost: each task parks on a C ``asyncio.Future``; a
-    plain function pops the earliest int deadline (a heap of distinct deadlines with what is
-    due beside it, as the kernel's), resolves the future and runs the task's wake-up in place.
-    No event-loop iteration, no time source, no validation: a bound on any design of
-    evclock's shape, not a scheduler."""
-    loop = asyncio.new_event_loop()
-    heap: list[int] = []
-    at: dict[int, Any] = {}
-    now = [0]
-    heappush, heappop = heapq.heappush, heapq.heappop
-
-    def sleep(seconds: float) -> asyncio.Future[None]:
-        fut: asyncio.Future[None] = asyncio.Future()  # on the running loop
-        when = now[0] + round(seconds * 1e9)
-        present = at.setdefault(when, fut)
-        if present is fut:
-            heappush(heap, when)
-        elif type(present) is list:
-            present.append(fut)
-        else:
-            at[when] = [present, fut]
-        return fut
-
-    def wake(fut: asyncio.Future[None]) -> None:
-        ((callback, ctx),) = fut._callbacks  # type: ignore[attr-defined]
-        fut.remove_done_callback(callback)
-        fut.set_result(None)
-        ctx.run(callback, fut)
-
-    async def worker(durations: list[float]) -> None:
-        for d in durations:
-            await sleep(d)
-
-    def drive() -> None:
-        pop = at.pop
-        while heap:
-            now[0] = when = heappop(heap)
-            entry = pop(when)
-            if type(entry) is list:
-                for fut in entry:
-                    wake(fut)
-                continue
-            # wake(entry), inlined as the kernel wakes a lone waiter (no call per wakeup)
-            ((callback, ctx),) = entry._callbacks
-            entry.remove_done_callback(callback)
-            entry.set_result(None)
-            ctx.run(callback, entry)
-
-    _run_minimal(loop, rows, worker, drive)
-
-
-def duck_future_minimal(rows: list[list[float]]) -> None:
-    """The least a sleep costs that parks the task on a *Future-compatible object* (asyncio's
-    ``_asyncio_future_blocking`` protocol) instead of a C future: a slotted Python object
-    whose ``add_done_callback`` keeps the task's wake-up, and whose ``result`` is a C
-    callable. Cancellable in principle (the task calls its ``cancel``), but the task takes
-    its generic path for such objects (attribute lookups, a Python ``add_done_callback``).
-    Same harness as :func:`future_wake_minimal`: no loop, time source or validation."""
-    loop = asyncio.new_event_loop()
-    heap: list[int] = []
-    at: dict[int, Any] = {}
-    now = [0]
-    heappush, heappop = heapq.heappush, heapq.heappop
-
-    class Waiter:
-        __slots__ = ("_asyncio_future_blocking", "_callback", "_context")
-        _loop = loop  # read by the task when there is no get_loop()
-        result = itertools.repeat(None).__next__  # a C callable: no frame on wake-up
-
-        def add_done_callback(self, callback: Any, *, context: Any = None) -> None:
-            self._callback = callback
-            self._context = context
-
-    new = object.__new__
-
-    @types.coroutine
-    def sleep(seconds: float) -> Generator[Any, None, None]:
-        waiter = new(Waiter)
-        waiter._asyncio_future_blocking = True
-        when = now[0] + round(seconds * 1e9)
-        present = at.setdefault(when, waiter)
-        if present is waiter:
-            heappush(heap, when)
-        elif type(present) is list:
-            present.append(waiter)
-        else:
-            at[when] = [present, waiter]
-        yield waiter
-
-    async def worker(durations: list[float]) -> None:
-        for d in durations:
-            await sleep(d)
-
-    def drive() -> None:
-        pop = at.pop
-        while heap:
-            now[0] = when = heappop(heap)
-            entry = pop(when)
-            if type(entry) is list:
-                for waiter in entry:
-                    waiter._context.run(waiter._callback, waiter)
-                continue
-            entry._context.run(entry._callback, entry)
-
-    _run_minimal(loop, rows, worker, drive)
-
-
-def park_minimal(rows: list[list[float]]) -> None:
-    """The least a sleep costs that parks the task without a future: a bare ``yield`` (as
-    ``asyncio.sleep(0)`` does) makes the task's step hand itself to ``loop.call_soon``,
-    which files it under the sleep's deadline instead of running it next; a plain
-    function pops the earliest deadline and runs the step in place. Not a scheduler:
-    nothing here can cancel a parked task (``Task.cancel`` of a task waiting on no future
-    only sets a flag), and there is no loop, time source or validation."""
-    heap: list[int] = []
-    at: dict[int, Any] = {}
-    now = [0]
-    parking: list[int | None] = [None]
-    heappush, heappop = heapq.heappush, heapq.heappop
-
-    class ParkingLoop(asyncio.SelectorEventLoop):
-        def call_soon(self, callback: Any, *args: Any, context: Any = None) -> Any:  # type: ignore[override]
-            when = parking[0]
-            if when is None:
-                return super().call_soon(callback, *args, context=context)
-            parking[0] = None
-            entry = (callback, context)
-            present = at.setdefault(when, entry)
-            if present is entry:
-                heappush(heap, when)
-            elif type(present) is list:
-                present.append(entry)
-            else:
-                at[when] = [present, entry]
-            return None
-
-    loop = ParkingLoop()
-
-    @types.coroutine
-    def sleep(seconds: float) -> Generator[None, None, None]:
-        parking[0] = now[0] + round(seconds * 1e9)
-        yield
-
-    async def worker(durations: list[float]) -> None:
-        for d in durations:
-            await sleep(d)
-
-    def drive() -> None:
-        pop = at.pop
-        while heap:
-            now[0] = when = heappop(heap)
-            entry = pop(when)
-            if type(entry) is list:
-                for step, ctx in entry:
-                    ctx.run(step)
-                continue
-            step, ctx = entry
-            ctx.run(step)
-
-    _run_minimal(loop, rows, worker, drive)
-
-
-def simpy_timeout(rows: list[list[float]]) -> None:
-    import simpy
-
-    env = simpy.Environment()
-
-    def proc(durations: list[float]) -> Generator[Any, Any, None]:
-        timeout = env.timeout
-        for d in durations:
-            yield timeout(d)
-
-    for row in rows:
-        env.process(proc(row))
-    env.run()
-
-
-def asyncio_timeouts_sim(rows: list[list[float]]) -> None:
-    import evclock
-
-    async def worker(never: asyncio.Event, durations: list[float]) -> None:
-        timeout = asyncio.timeout
-        for d in durations:
-            try:
-                async with timeout(d):
-                    await never.wait()
-            except TimeoutError:
-                pass
-
-    async def main() -> None:
-        never = asyncio.Event()
-        await asyncio.gather(*(worker(never, row) for row in rows))
-
-    evclock.run(main())
-
-
-def simpy_timeouts(rows: list[list[float]]) -> None:
-    import simpy
-
-    env = simpy.Environment()
-    never = env.event()
-
-    def proc(durations: list[float]) -> Generator[Any, Any, None]:
-        timeout = env.timeout
-        for d in durations:
-            yield never | timeout(d)
-
-    for row in rows:
-        env.process(proc(row))
-    env.run()
-
-
-# KUKA (PyBullet): the controllers of benchmarks/kuka_throughput.py, run by evclock rate
-# loops or by a hand-written synchronous loop; ``count`` is the number of physics steps. Each
-# prints the arm's final joint state, which must be bit-identical between the two.
-
-KUKA_HZ = 100.0  # set by --kuka-hz in the process that runs a KUKA variant
-
-
-def _kuka_state(ctl: Any) -> str:
-    import pybullet as pb
-
-    arm = ctl.arm
-    states = pb.getJointStates(arm.robot, arm.joints, physicsClientId=arm.client)
-    return repr([(s[0], s[1]) for s in states] + [ctl.plans, ctl.target_index])
-
-
-def kuka_sync(rows: list[list[float]]) -> None:
-    import kuka_throughput as k
-    import pybullet as pb
-
-    steps = len(rows[0])
-    client = pb.connect(pb.DIRECT)
-    try:
-        ctl = k.Controllers(client, KUKA_HZ)
-        control_due = k.ticks_due(KUKA_HZ, steps)
-        plan_due = k.ticks_due(k.PLANNER_HZ, steps)
-        # When both are due at one step, the one that ran (and so re-armed) first goes
-        # first, as equal deadlines fire in scheduling order on the sim loop.
-        control_first = True
-        for step in range(steps):
-            control, plan_ = control_due[step], plan_due[step]
-            if control and plan_:
-                if not control_first:
-                    ctl.plan()
-                ctl.control()
-                if control_first:
-                    ctl.plan()
-            elif control:
-                ctl.control()
-                control_first = False
-            elif plan_:
-                ctl.plan()
-                control_first = True
-            pb.stepSimulation(physicsClientId=client)
-        print("state", _kuka_state(ctl))
-    finally:
-        pb.disconnect(client)
-
-
-def kuka_evclock(rows: list[list[float]], watch_time_step: bool = True) -> None:
-    import kuka_throughput as k
-
-    import evclock
-
-    steps = len(rows[0])
-    source = evclock.sources.PyBulletTimeSource.connect(watch_time_step=watch_time_step)
-    ctl = k.Controllers(source.client, KUKA_HZ)
-
-    async def every(hz: float, work: Callable[[], None]) -> None:
-        async for _tick in evclock.clock().rate(hz):
-            work()
-
-    async def main() -> None:
-        clock = evclock.clock()
-        async with asyncio.TaskGroup() as tg:
-            control = tg.create_task(every(KUKA_HZ, ctl.control))
-            planner = tg.create_task(every(k.PLANNER_HZ, ctl.plan))
-            # Main's wait ends first at that instant (scheduled first): the ticks due then are
-            # cancelled, as the synchronous loop stops before its step `steps`.
-            await clock.sleep(steps / k.PHYSICS_HZ)  # exact: steps is a multiple of 6
-            control.cancel()
-            planner.cancel()
-        assert source.step_index == steps, (source.step_index, steps)
-        print("state", _kuka_state(ctl))
-
-    evclock.run(main(), source=source)
-
-
-VARIANTS: dict[str, Callable[[list[list[float]]], None]] = {
-    "kuka sync": kuka_sync,
-    "kuka evclock": kuka_evclock,
-    "kuka evclock, no time-step watch": functools.partial(kuka_evclock, watch_time_step=False),
-    "clock.sleep": clock_sleep,
-    "asyncio.sleep (sim loop)": asyncio_sleep_sim,
-    "asyncio.sleep(0) (stock loop)": asyncio_sleep0,
-    "simpy timeout": simpy_timeout,
-    "future wake, minimal (no loop)": future_wake_minimal,
-    "duck-typed future, minimal (no loop)": duck_future_minimal,
-    "bare-yield park, minimal (no loop)": park_minimal,
-    "asyncio.timeout (sim loop)": asyncio_timeouts_sim,
-    "simpy never | timeout": simpy_timeouts,
+def rate_plan(loops: int, seed: int, shared: bool) -> list[float]:
+    """Seeded rates in hertz: in [10, 500] (periods that almost never share a deadline), or
+    drawn from :data:`SHARED_RATES` (deadlines shared)."""
+    rng = random.Random(seed)
+    if shared:
+        return [rng.choice(SHARED_RATES) for _ in range(loops)]
+    return [rng.uniform(10.0, 500.0) for _ in range(loops)]
+
+
+def ticks(hz: float, ms: int) -> int:
+    """Ticks of a rate loop at ``hz`` over ``ms`` of sim time (tick 0 at the start)."""
+    return max(2, int(hz * ms) // 1000)
+
+
+@dataclass(frozen=True)
+class Workload:
+    """How a workload's processes build their plan, take ``count`` of it, and count units."""
+
+    kind: str  # "sleeps", "rates" or "kuka"
+    whole_ms: bool = False
+    shared: bool = False
+
+    def build(self, tasks: int, max_count: int, seed: int) -> Any:
+        if self.kind == "sleeps":
+            return sleep_plan(tasks, max_count, seed, self.whole_ms)
+        if self.kind == "rates":
+            return rate_plan(tasks, seed, self.shared)
+        return None
+
+    def take(self, plan: Any, count: int) -> Any:
+        if self.kind == "sleeps":
+            return [row[:count] for row in plan]
+        if self.kind == "rates":
+            return [(hz, ticks(hz, count)) for hz in plan]
+        return count
+
+    def units(self, tasks: int, count: int, seed: int) -> int:
+        """Wake-ups (physics steps for KUKA) at ``count``."""
+        if self.kind == "sleeps":
+            return tasks * count
+        if self.kind == "rates":
+            return sum(ticks(hz, count) for hz in rate_plan(tasks, seed, self.shared))
+        return count
+
+
+WORKLOADS = {
+    "fanout": Workload("sleeps"),
+    "coincident": Workload("sleeps", whole_ms=True),
+    "timeouts": Workload("sleeps"),
+    "scale": Workload("sleeps"),
+    "rates": Workload("rates"),
+    "rates-shared": Workload("rates", shared=True),
+    "kuka": Workload("kuka"),
 }
+
+VARIANTS: dict[str, Callable[..., Any]] = {
+    "asyncio.sleep(0), stock loop": peers.sleep0_fanout,
+    "least future-based sleep": peers.least_future_sleep,
+    "clock.sleep": peers.clock_sleep,
+    "asyncio.sleep, sim loop": peers.asyncio_sleep_sim,
+    "SimPy env.timeout": peers.simpy_sleep,
+    "asyncio.sleep(0) per tick, stock": peers.sleep0_rates,
+    "clock.rate": peers.clock_rate,
+    "asyncio.sleep rate, sim loop": peers.asyncio_rate_sim,
+    "SimPy rate": peers.simpy_rate,
+    "asyncio.timeout, instant stock": peers.timeout_instant,
+    "asyncio.timeout, sim loop": peers.timeout_sim,
+    "asyncio.wait_for, instant stock": peers.wait_for_instant,
+    "asyncio.wait_for, sim loop": peers.wait_for_sim,
+    "SimPy never | timeout": peers.simpy_timeouts,
+    "kuka sync": peers.kuka_sync,
+    "kuka evclock": peers.kuka_evclock,
+    "kuka evclock, no time-step watch": functools.partial(
+        peers.kuka_evclock, watch_time_step=False
+    ),
+}
+
+# ------------------------------------------------------------------------------ one process
+
+#: Callgrind's client requests, compiled into a small shared library that the measured
+#: process loads with ctypes: instructions are collected only between ``begin`` and ``end``.
+MARKS_C = """
+#include <valgrind/callgrind.h>
+void evb_start(void) { CALLGRIND_START_INSTRUMENTATION; }
+void evb_zero(void) { CALLGRIND_ZERO_STATS; }
+void evb_toggle(void) { CALLGRIND_TOGGLE_COLLECT; }
+void evb_dump(void) { CALLGRIND_DUMP_STATS; }
+"""
+
+
+def build_marks(directory: str) -> str:
+    """Compile :data:`MARKS_C` into ``directory``; return the library's path."""
+    source = os.path.join(directory, "marks.c")
+    library = os.path.join(directory, "marks.so")
+    with open(source, "w") as f:
+        f.write(MARKS_C)
+    done = subprocess.run(
+        ["gcc", "-shared", "-fPIC", "-O1", "-o", library, source],
+        capture_output=True,
+        text=True,
+    )
+    if done.returncode:
+        raise SystemExit(
+            "could not compile callgrind's client requests (needs gcc and valgrind's headers, "
+            f"e.g. apt-get install gcc valgrind):\n{done.stderr}"
+        )
+    return library
+
+
+class _Marks:
+    """Collect instructions only around each measured run; dump each run's count."""
+
+    def __init__(self, library: str) -> None:
+        import ctypes
+
+        self._lib = ctypes.CDLL(library)
+
+    def start_instrumentation(self) -> None:
+        self._lib.evb_start()
+
+    def begin(self) -> None:
+        self._lib.evb_zero()
+        self._lib.evb_toggle()
+
+    def end(self) -> None:
+        self._lib.evb_toggle()
+        self._lib.evb_dump()
+
+
+def run_variant(args: argparse.Namespace) -> int:
+    """Build the plan, then run (and time) the variant on its first ``count`` entries for
+    each count given; print ``wall <count> <seconds>`` (and KUKA's final ``state``)."""
+    workload = WORKLOADS[args.workload]
+    plan = workload.build(args.tasks, args.max_count, args.seed)
+    fn = VARIANTS[args.variant]
+    # Imports before the clock starts.
+    if workload.kind == "kuka":
+        __import__("kuka_throughput")
+    elif "SimPy" in args.variant:
+        __import__("simpy")
+    elif "sim loop" in args.variant or args.variant.startswith("clock."):
+        __import__("evclock")
+
+    def call(work: Any) -> Any:
+        return fn(work, args.kuka_hz) if workload.kind == "kuka" else fn(work)
+
+    # Warm up first (lazy imports, first-run allocations), so that no measured run pays
+    # for them; under callgrind this runs uninstrumented (``--instr-atstart=no``).
+    call(workload.take(plan, min(args.count)))
+    marks = _Marks(args.callgrind_marks) if args.callgrind_marks else None
+    if marks is not None:
+        marks.start_instrumentation()
+    for count in args.count:
+        work = workload.take(plan, count)
+        if marks is not None:
+            marks.begin()
+        start = time.perf_counter()
+        state = call(work)
+        elapsed = time.perf_counter() - start
+        if marks is not None:
+            marks.end()
+        print("wall", count, repr(elapsed))
+        if workload.kind == "kuka":
+            print("state", state)
+    return 0
 
 
 # ------------------------------------------------------------------------------ harness
 
 
-def _command(variant: str, tasks: int, count: int, seed: int, hz: float) -> list[str]:
-    return [
-        sys.executable,
-        os.path.abspath(__file__),
-        "--variant",
-        variant,
-        "--tasks",
-        str(tasks),
-        "--count",
-        str(count),
-        "--seed",
-        str(seed),
-        "--kuka-hz",
-        repr(hz),
-    ]
+@dataclass(frozen=True)
+class Job:
+    """One variant of one workload at two counts."""
+
+    workload: str
+    variant: str
+    tasks: int
+    counts: tuple[int, int]
+    seed: int
+    hz: float = 0.0
+
+    def command(self, counts: Sequence[int], marks: str = "") -> list[str]:
+        cmd = [sys.executable, os.path.join(HERE, "instructions.py"), "--variant", self.variant]
+        cmd += ["--workload", self.workload, "--tasks", str(self.tasks), "--seed", str(self.seed)]
+        cmd += ["--max-count", str(max(counts)), "--kuka-hz", repr(self.hz)]
+        if marks:
+            cmd += ["--callgrind-marks", marks]
+        return [*cmd, "--count", *(str(c) for c in counts)]
+
+    @property
+    def units(self) -> int:
+        """Wake-ups (steps) of the larger count minus those of the smaller."""
+        w = WORKLOADS[self.workload]
+        small, big = self.counts
+        return w.units(self.tasks, big, self.seed) - w.units(self.tasks, small, self.seed)
 
 
-def _output(stdout: str, key: str) -> str:
-    for line in stdout.splitlines():
-        if line.startswith(key + " "):
-            return line[len(key) + 1 :]
-    raise RuntimeError(f"no {key!r} line in the variant's output:\n{stdout}")
+def _output(stdout: str, key: str) -> list[str]:
+    found = [line.split(" ", 2)[1:] for line in stdout.splitlines() if line.startswith(key + " ")]
+    if not found:
+        raise RuntimeError(f"no {key!r} line in the variant's output:\n{stdout}")
+    return [" ".join(f) for f in found]
 
 
-def instructions(
-    variant: str, tasks: int, count: int, seed: int, hz: float, hash_seed: int = 0
-) -> tuple[int, str]:
-    """Instructions executed by one process running ``variant`` (callgrind's total) with
-    string-hash seed ``hash_seed``, and the process's output."""
-    done = subprocess.run(
-        [
-            "valgrind",
-            "--tool=callgrind",
-            "--callgrind-out-file=/dev/null",
-            *_command(variant, tasks, count, seed, hz),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=7200,
-        check=True,
-        # One string-hash seed for every process (see the module's docstring).
-        env={**os.environ, "PYTHONHASHSEED": str(hash_seed)},
-    )
-    found = re.search(r"Collected : (\d+)", done.stderr)
-    if found is None:
-        raise RuntimeError(f"no instruction count in callgrind's output:\n{done.stderr}")
-    return int(found.group(1)), done.stdout
-
-
-def wall(variant: str, tasks: int, count: int, seed: int, hz: float) -> float:
-    """Wall seconds of the workload in one plain process (the best of ``WALL_REPEAT``)."""
-    best = math.inf
-    for _ in range(WALL_REPEAT):
+def callgrind(job: Job, marks: str, hash_seed: int = 0) -> tuple[list[int], str]:
+    """Instructions executed by each of ``job``'s measured runs (both counts, one process
+    under callgrind, collected only between the marks), and the process's output."""
+    with tempfile.TemporaryDirectory() as out:
+        base = os.path.join(out, "callgrind.out")
         done = subprocess.run(
-            _command(variant, tasks, count, seed, hz),
+            [
+                "valgrind",
+                "--tool=callgrind",
+                "--instr-atstart=no",
+                "--collect-atstart=no",
+                f"--callgrind-out-file={base}",
+                *job.command(job.counts, marks),
+            ],
             capture_output=True,
             text=True,
             timeout=3600,
-            check=True,
+            env={**os.environ, "PYTHONHASHSEED": str(hash_seed)},
         )
-        best = min(best, float(_output(done.stdout, "wall")))
-    return best
+        if done.returncode:
+            raise RuntimeError(f"{job.variant} failed:\n{done.stdout}\n{done.stderr}")
+        totals = []
+        for i in range(1, len(job.counts) + 1):
+            with open(f"{base}.{i}") as f:
+                found = re.search(r"^totals: (\d+)", f.read(), re.MULTILINE)
+            if found is None:
+                raise RuntimeError(f"no totals in callgrind's dump {i} of {job.variant}")
+            totals.append(int(found.group(1)))
+    return totals, done.stdout
 
 
-class Cost:
-    """Per unit (wakeup, physics step): (full run - empty run) / units, in instructions
-    (under string-hash seed ``hash_seed``) and, unless ``timed`` is false, in wall
-    nanoseconds (NaN then); ``out`` is the full run's output."""
+@dataclass
+class Measured:
+    """Per wake-up (per physics step for KUKA): instructions and wall nanoseconds."""
 
-    def __init__(
-        self,
-        variant: str,
-        tasks: int,
-        count: int,
-        seed: int,
-        hz: float = 0.0,
-        hash_seed: int = 0,
-        timed: bool = True,
-    ):
-        full, self.out = instructions(variant, tasks, count, seed, hz, hash_seed)
-        empty, _ = instructions(variant, tasks, 0, seed, hz, hash_seed)
-        units = tasks * count
-        self.instr = (full - empty) / units
-        self.ns = wall_ns(variant, tasks, count, seed, hz) if timed else math.nan
+    instr: float
+    ns: float = math.nan
+    state: str = ""
 
 
-def wall_ns(variant: str, tasks: int, count: int, seed: int, hz: float = 0.0) -> float:
-    """Wall nanoseconds per unit: (full run - empty run) / units, in plain processes."""
-    full = wall(variant, tasks, count, seed, hz)
-    empty = wall(variant, tasks, 0, seed, hz)
-    return (full - empty) / (tasks * count) * 1e9
+class Harness:
+    """Runs the callgrind processes ``jobs`` at a time (instruction counts do not depend on
+    the load), then the plain wall-time processes one at a time, interleaved."""
+
+    def __init__(self, jobs: int, wall_scale: int, wall_rounds: int, marks: str) -> None:
+        self.pool = concurrent.futures.ThreadPoolExecutor(max_workers=jobs)
+        self.marks = marks
+        self.wall_scale = wall_scale
+        self.wall_rounds = wall_rounds
+        self.pending: list[tuple[Job, int, Any, Any]] = []
+
+    def instructions(self, job: Job, hash_seed: int = 0) -> Callable[[], Measured]:
+        """Submit ``job``'s callgrind run; the returned function waits for it."""
+        future = self.pool.submit(callgrind, job, self.marks, hash_seed)
+
+        def result() -> Measured:
+            (i_small, i_big), out = future.result()
+            state = _output(out, "state")[-1] if job.workload == "kuka" else ""
+            return Measured((i_big - i_small) / job.units, state=state)
+
+        return result
+
+    def wall(self, jobs: Sequence[Job]) -> list[float]:
+        """Wall ns per unit of each job: its plain runs at ``wall_scale`` times both counts,
+        ``wall_rounds`` rounds interleaved across ``jobs``, fastest of each count kept."""
+        best = [[math.inf, math.inf] for _ in jobs]
+        for _round in range(self.wall_rounds):
+            for i, job in enumerate(jobs):
+                counts = [c * self.wall_scale for c in job.counts]
+                done = subprocess.run(
+                    job.command(counts),
+                    capture_output=True,
+                    text=True,
+                    timeout=3600,
+                    env={**os.environ, "PYTHONHASHSEED": "0"} if job.workload != "kuka" else None,
+                )
+                if done.returncode:
+                    raise RuntimeError(f"{job.variant} failed:\n{done.stdout}\n{done.stderr}")
+                for line in _output(done.stdout, "wall"):
+                    count, seconds = line.split()
+                    k = counts.index(int(count))
+                    best[i][k] = min(best[i][k], float(seconds))
+        return [
+            (b[1] - b[0]) / (job.units * self.wall_scale) * 1e9
+            for b, job in zip(best, jobs, strict=True)
+        ]
 
 
-def _row(name: str, cost: Cost, base: Cost, against: str) -> str:
-    return (
-        f"  {name:<36}{cost.instr:>10,.0f}{cost.instr / base.instr:>8.2f}x"
-        f"{cost.ns:>10,.0f}{cost.ns / base.ns:>8.2f}x   (vs {against})"
-    )
+# ------------------------------------------------------------------------------ report
 
 
-HEADER = f"  {'':<36}{'instr':>10}{'ratio':>9}{'wall ns':>10}{'ratio':>9}"
+def _x(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:.2f}x"
+
+
+def print_table(title: str, rows: list[tuple[str, Measured]], floor: str, simpy: str) -> None:
+    """One workload: instructions per wake-up and ratios to its floor; wall ns and ratio to
+    SimPy (above 1: slower than SimPy)."""
+    got = dict(rows)
+    print(f"\n{title}")
+    print(f"  {'variant':<34}{'instr':>9}{'vs floor':>10}{'wall ns':>9}{'vs SimPy':>10}")
+    for name, m in rows:
+        print(
+            f"  {name:<34}{m.instr:>9,.0f}{_x(m.instr / got[floor].instr):>10}"
+            f"{m.ns:>9,.0f}{_x(m.ns / got[simpy].ns):>10}"
+        )
+
+
+@dataclass
+class Target:
+    what: str
+    value: float
+    limit: float
+    at_least: bool = False
+
+    def line(self) -> str:
+        met = self.value >= self.limit if self.at_least else self.value <= self.limit
+        sign = ">=" if self.at_least else "<="
+        verdict = "met" if met else "NOT MET"
+        return f"  {self.what:<70}{self.value:>7.3f}x  {sign} {self.limit:.2f}x  {verdict}"
+
+
+SLEEP_VARIANTS = (
+    "asyncio.sleep(0), stock loop",
+    "least future-based sleep",
+    "clock.sleep",
+    "asyncio.sleep, sim loop",
+    "SimPy env.timeout",
+)
+RATE_VARIANTS = (
+    "asyncio.sleep(0) per tick, stock",
+    "clock.rate",
+    "asyncio.sleep rate, sim loop",
+    "SimPy rate",
+)
+TIMEOUT_VARIANTS = (
+    "asyncio.timeout, instant stock",
+    "asyncio.timeout, sim loop",
+    "asyncio.wait_for, instant stock",
+    "asyncio.wait_for, sim loop",
+    "SimPy never | timeout",
+)
 
 
 def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
-    p.add_argument("--tasks", type=int, default=1000)
-    p.add_argument("--sleeps", type=int, default=300, help="sleeps per task (fanout)")
-    p.add_argument("--waits", type=int, default=100, help="timed-out waits per task")
+    p.add_argument("--tasks", type=int, default=1000, help="tasks (fanout, coincident, timeouts)")
+    p.add_argument("--sleeps", type=int, default=120, help="sleeps per task; also run at half")
+    p.add_argument("--waits", type=int, default=10, help="timed-out waits per task; also half")
+    p.add_argument("--loops", type=int, default=100, help="rate loops (rates, rates-shared)")
+    p.add_argument("--rate-ms", type=int, default=1000, help="sim ms of rate loops; also half")
     p.add_argument("--big", type=int, default=100_000, help="concurrent sleepers (scale)")
-    p.add_argument("--big-sleeps", type=int, default=3, help="sleeps per task at --big")
-    p.add_argument("--kuka-steps", type=int, default=2400, help="physics steps (multiple of 6)")
-    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--big-sleeps", type=int, default=2, help="sleeps per task in scale; also half")
+    p.add_argument("--kuka-steps", type=int, default=1200, help="physics steps (multiple of 12)")
+    p.add_argument("--hash-seeds", type=int, default=3, help="string-hash seeds for KUKA")
     p.add_argument(
-        "--hash-seeds",
-        type=int,
-        default=3,
-        help="string-hash seeds 0 .. N-1 the KUKA comparison is counted under (mean reported)",
+        "--kuka-no-watch",
+        action="store_true",
+        help="also count KUKA with PyBulletTimeSource(watch_time_step=False)",
     )
-    p.add_argument("--only", choices=["fanout", "timeouts", "scale", "kuka"], action="append")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--jobs", type=int, default=2, help="callgrind processes at a time")
+    p.add_argument("--wall-scale", type=int, default=10, help="wall runs' counts, x callgrind's")
+    p.add_argument("--wall-rounds", type=int, default=3, help="interleaved wall rounds")
+    p.add_argument("--only", choices=list(WORKLOADS), action="append")
     p.add_argument("--variant", choices=sorted(VARIANTS), help=argparse.SUPPRESS)
-    p.add_argument("--count", type=int, help=argparse.SUPPRESS)
-    p.add_argument("--kuka-hz", type=float, default=KUKA_HZ, help=argparse.SUPPRESS)
+    p.add_argument("--workload", choices=list(WORKLOADS), help=argparse.SUPPRESS)
+    p.add_argument("--count", type=int, nargs="+", help=argparse.SUPPRESS)
+    p.add_argument("--max-count", type=int, help=argparse.SUPPRESS)
+    p.add_argument("--kuka-hz", type=float, default=100.0, help=argparse.SUPPRESS)
+    p.add_argument("--callgrind-marks", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
+def _half(n: int, name: str) -> tuple[int, int]:
+    if n < 1:
+        raise SystemExit(f"{name} must be at least 1 (the benchmark also runs half of it)")
+    return n // 2, n
+
+
 def main(argv: Sequence[str] | None = None) -> int:
-    global KUKA_HZ
     args = parse_args(argv)
     if args.variant is not None:
-        KUKA_HZ = args.kuka_hz
-        rows = plan(args.tasks, args.count, args.seed)
-        # Imports happen before the wall clock starts (callgrind's count subtracts them).
-        __import__("kuka_throughput" if args.variant.startswith("kuka") else "evclock")
-        if args.variant.startswith("simpy"):
-            __import__("simpy")
-        start = time.perf_counter()
-        VARIANTS[args.variant](rows)
-        print("wall", repr(time.perf_counter() - start))
-        return 0
-    parts = args.only or ["fanout", "timeouts", "scale", "kuka"]
+        if args.max_count is None:
+            args.max_count = max(args.count)
+        return run_variant(args)
+    parts = args.only or [w for w in WORKLOADS if w != "scale"]
     if args.hash_seeds < 1:
         raise SystemExit("--hash-seeds must be at least 1")
-    print(
-        f"python {sys.version.split()[0]}; per wakeup: instructions under callgrind and wall "
-        f"ns (best of {WALL_REPEAT} plain runs), (full run - empty run) / wakeups"
-    )
+    if args.kuka_steps % 12:
+        raise SystemExit("--kuka-steps must be a multiple of 12 (half of it a whole ns count)")
+    started = time.monotonic()
+    marks_dir = tempfile.TemporaryDirectory()
+    h = Harness(args.jobs, args.wall_scale, args.wall_rounds, build_marks(marks_dir.name))
+    seed = args.seed
+    sleeps, waits = _half(args.sleeps, "--sleeps"), _half(args.waits, "--waits")
+    rate_ms = _half(args.rate_ms, "--rate-ms")
+
+    # Every workload's jobs, submitted to callgrind at once (results in this order).
+    tables: list[tuple[str, str, list[Job]]] = []
     if "fanout" in parts:
-        n, k, seed = args.tasks, args.sleeps, args.seed
-        print(f"\nfanout: {n} tasks x {k} sleeps (seed {seed})\n{HEADER}")
-        floor = Cost("asyncio.sleep(0) (stock loop)", n, k, seed)
-        for name in (
-            "clock.sleep",
-            "asyncio.sleep (sim loop)",
-            "simpy timeout",
-            "future wake, minimal (no loop)",
-            "duck-typed future, minimal (no loop)",
-            "bare-yield park, minimal (no loop)",
-        ):
-            print(_row(name, Cost(name, n, k, seed), floor, "the asyncio.sleep(0) floor"))
-        print(_row("asyncio.sleep(0) (stock loop)", floor, floor, "itself"))
+        jobs = [Job("fanout", v, args.tasks, sleeps, seed) for v in SLEEP_VARIANTS]
+        tables.append(("fanout", "fan-out", jobs))
+    if "coincident" in parts:
+        jobs = [Job("coincident", v, args.tasks, sleeps, seed) for v in SLEEP_VARIANTS]
+        tables.append(("coincident", "fan-out, whole ms", jobs))
+    if "rates" in parts:
+        jobs = [Job("rates", v, args.loops, rate_ms, seed) for v in RATE_VARIANTS]
+        tables.append(("rates", "rate loops", jobs))
+    if "rates-shared" in parts:
+        jobs = [Job("rates-shared", v, args.loops, rate_ms, seed) for v in RATE_VARIANTS]
+        tables.append(("rates-shared", "rate loops, shared", jobs))
     if "timeouts" in parts:
-        n, k, seed = args.tasks, args.waits, args.seed
-        print(f"\ntimeouts: {n} tasks x {k} waits that time out (seed {seed})\n{HEADER}")
-        simpy = Cost("simpy never | timeout", n, k, seed)
-        ours = Cost("asyncio.timeout (sim loop)", n, k, seed)
-        print(_row("asyncio.timeout (sim loop)", ours, simpy, "SimPy"))
-        print(_row("simpy never | timeout", simpy, simpy, "itself"))
+        jobs = [Job("timeouts", v, args.tasks, waits, seed) for v in TIMEOUT_VARIANTS]
+        tables.append(("timeouts", "timeouts", jobs))
     if "scale" in parts:
-        k, seed = args.big_sleeps, args.seed
-        print(f"\nscale: clock.sleep, {k} sleeps per task (seed {seed})\n{HEADER}")
-        small = Cost("clock.sleep", args.tasks, k, seed)
-        big = Cost("clock.sleep", args.big, k, seed)
-        print(_row(f"{args.tasks:,} sleepers", small, small, "itself"))
-        print(_row(f"{args.big:,} sleepers", big, small, f"{args.tasks:,} sleepers"))
+        big_sleeps = _half(args.big_sleeps, "--big-sleeps")
+        jobs = [
+            Job("scale", "clock.sleep", args.tasks, big_sleeps, seed),
+            Job("scale", "clock.sleep", args.big, big_sleeps, seed),
+        ]
+        tables.append(("scale", "scale", jobs))
+    kuka_variants = ["kuka sync", "kuka evclock"]
+    if args.kuka_no_watch:
+        kuka_variants.append("kuka evclock, no time-step watch")
+    steps = (args.kuka_steps // 12 * 6, args.kuka_steps)
+    kuka_jobs = {
+        hz: [Job("kuka", v, 1, steps, seed, hz) for v in kuka_variants] for hz in (100.0, 240.0)
+    }
+    waits_for: dict[Job, list[Callable[[], Measured]]] = {}
+    for _key, _label, jobs in tables:
+        for job in jobs:
+            waits_for[job] = [h.instructions(job)]
     if "kuka" in parts:
-        steps = args.kuka_steps
-        if steps % 6:
-            raise SystemExit("--kuka-steps must be a multiple of 6 (a whole number of ns)")
-        print(
-            f"\nkuka: {steps} physics steps at 240 Hz, per step; throughput ratio = "
-            "synchronous loop's cost / evclock's"
-        )
-        # "no watch": PyBulletTimeSource(watch_time_step=False), what the time-step watch
-        # (one getPhysicsEngineParameters call per advance, on by default) costs.
-        variants = ("kuka evclock", "kuka evclock, no time-step watch")
-        print(
-            f"  {'controller':<12}{'hash seed':>10}{'sync instr':>12}{'evclock':>12}{'ratio':>8}"
-            f"{'no watch':>12}{'ratio':>8}"
-        )
-        for hz in (100.0, 240.0):
-            ratios: dict[str, list[float]] = {name: [] for name in variants}
-            for hash_seed in range(args.hash_seeds):
-                sync = Cost("kuka sync", 1, steps, args.seed, hz, hash_seed, timed=False)
-                row = f"  {hz:>7g} Hz  {hash_seed:>10}{sync.instr:>12,.0f}"
-                for name in variants:
-                    ev = Cost(name, 1, steps, args.seed, hz, hash_seed, timed=False)
-                    if _output(sync.out, "state") != _output(ev.out, "state"):
-                        raise SystemExit(f"KUKA at {hz:g} Hz ({name}): the final states differ")
-                    ratios[name].append(sync.instr / ev.instr)
-                    row += f"{ev.instr:>12,.0f}{ratios[name][-1]:>8.3f}"
-                print(row + "   final states bit-identical")
-            # Wall time once per variant, in plain runs (random string-hash seeds).
-            wall_ratio = wall_ns("kuka sync", 1, steps, args.seed, hz) / wall_ns(
-                "kuka evclock", 1, steps, args.seed, hz
-            )
-            means = [statistics.fmean(ratios[name]) for name in variants]
+        for jobs in kuka_jobs.values():
+            for job in jobs:
+                waits_for[job] = [h.instructions(job, s) for s in range(args.hash_seeds)]
+
+    measured = {job: [w() for w in ws] for job, ws in waits_for.items()}
+    h.pool.shutdown()
+    all_jobs = [job for _k, _l, jobs in tables for job in jobs]
+    if "kuka" in parts:
+        all_jobs += [job for jobs in kuka_jobs.values() for job in jobs[:2]]
+    for job, ns in zip(all_jobs, h.wall(all_jobs), strict=True):
+        measured[job][0].ns = ns
+
+    print(
+        f"python {sys.version.split()[0]}; per wake-up: instructions under callgrind, "
+        f"(run at N - run at N/2) / (wake-ups at N - at N/2), plans built in both runs; wall "
+        f"ns the same way from plain runs at {args.wall_scale}x N, fastest of "
+        f"{args.wall_rounds} interleaved rounds; every process with PYTHONHASHSEED=0"
+    )
+    got: dict[tuple[str, str], Measured] = {}
+    for key, _label, jobs in tables:
+        rows = [(job.variant, measured[job][0]) for job in jobs]
+        got.update({(key, name): m for name, m in rows})
+        n = jobs[0].tasks
+        if key in ("fanout", "coincident"):
+            unit = "integer ns in [1 ms, 10 ms]" if key == "fanout" else "whole ms, 1-10"
+            title = f"{key}: {n:,} tasks x N = {sleeps[1]} sleeps, durations {unit} (seed {seed})"
+            print_table(title, rows, SLEEP_VARIANTS[0], "SimPy env.timeout")
+        elif key.startswith("rates"):
+            rates = "50/100/200/250/500 Hz" if key.endswith("shared") else "10-500 Hz"
+            title = f"{key}: {n} rate loops at {rates} for N = {rate_ms[1]} ms of sim time"
+            title += f" (seed {seed}; {jobs[0].units:,} ticks from N/2 to N)"
+            print_table(title, rows, RATE_VARIANTS[0], "SimPy rate")
+        elif key == "timeouts":
+            title = f"timeouts: {n:,} tasks x N = {waits[1]} waits that time out (seed {seed})"
+            print_table(title, rows, TIMEOUT_VARIANTS[0], "SimPy never | timeout")
+        else:
+            small, big = (measured[job][0] for job in jobs)
+            print(f"\nscale: clock.sleep, N = {args.big_sleeps} sleeps per task (seed {seed})")
+            print(f"  {jobs[0].tasks:>9,} sleepers {small.instr:>9,.0f} instr {small.ns:>7,.0f} ns")
             print(
-                f"  {hz:>7g} Hz  mean of {args.hash_seeds} seeds: {means[0]:.3f} (from "
-                f"{min(ratios[variants[0]]):.3f} to {max(ratios[variants[0]]):.3f}), no watch "
-                f"{means[1]:.3f}; wall time (evclock): {wall_ratio:.3f}"
+                f"  {jobs[1].tasks:>9,} sleepers {big.instr:>9,.0f} instr {big.ns:>7,.0f} ns"
+                f"   {big.instr / small.instr:.2f}x / {big.ns / small.ns:.2f}x the first"
             )
+    kuka_means: dict[float, float] = {}
+    if "kuka" in parts:
+        print(
+            f"\nkuka: {args.kuka_steps} physics steps at 240 Hz (N/2 subtracted), per step; "
+            "ratio = synchronous loop's instructions / evclock's (1.0: evclock costs nothing)"
+        )
+        header = (
+            f"  {'controller':<12}{'hash seed':>10}{'sync instr':>12}{'evclock':>10}{'ratio':>8}"
+        )
+        print(header + (f"{'no watch':>10}{'ratio':>8}" if args.kuka_no_watch else ""))
+        for hz, jobs in kuka_jobs.items():
+            sync, *ours = (measured[job] for job in jobs)
+            ratios: list[list[float]] = [[] for _ in ours]
+            for s in range(args.hash_seeds):
+                line = f"  {hz:>7g} Hz  {s:>10}{sync[s].instr:>12,.0f}"
+                for i, ev in enumerate(ours):
+                    if ev[s].state != sync[s].state:
+                        raise SystemExit(
+                            f"KUKA at {hz:g} Hz ({jobs[i + 1].variant}): states differ"
+                        )
+                    ratios[i].append(sync[s].instr / ev[s].instr)
+                    line += f"{ev[s].instr:>10,.0f}{ratios[i][-1]:>8.3f}"
+                print(line + "   final states bit-identical")
+            kuka_means[hz] = statistics.fmean(ratios[0])
+            wall_ratio = sync[0].ns / ours[0][0].ns
+            print(
+                f"  {hz:>7g} Hz  mean of {args.hash_seeds} seeds: {kuka_means[hz]:.3f}"
+                + (f", no watch {statistics.fmean(ratios[1]):.3f}" if args.kuka_no_watch else "")
+                + f"; wall time (random hash seeds): {wall_ratio:.3f}"
+            )
+
+    # The summary table and the targets.
+    columns = {
+        "fanout": ("asyncio.sleep(0), stock loop", "clock.sleep", "asyncio.sleep, sim loop"),
+        "coincident": ("asyncio.sleep(0), stock loop", "clock.sleep", "asyncio.sleep, sim loop"),
+        "rates": ("asyncio.sleep(0) per tick, stock", "clock.rate", "asyncio.sleep rate, sim loop"),
+        "rates-shared": (
+            "asyncio.sleep(0) per tick, stock",
+            "clock.rate",
+            "asyncio.sleep rate, sim loop",
+        ),
+    }
+    simpy_of = {
+        "fanout": "SimPy env.timeout",
+        "coincident": "SimPy env.timeout",
+        "rates": "SimPy rate",
+        "rates-shared": "SimPy rate",
+        "timeouts": "SimPy never | timeout",
+    }
+    summary = [(key, label) for key, label, _jobs in tables if key in simpy_of]
+    if summary:
+        print(
+            "\nsummary: instructions per wake-up (x the floor); wall: SimPy's wake-ups/s over"
+            " evclock's (same run)"
+        )
+        print(
+            f"  {'workload':<20}{'floor':>8}{'clock.*':>16}{'asyncio.* (sim)':>17}"
+            f"{'SimPy':>16}{'wall clock.*':>14}{'wall asyncio.*':>16}"
+        )
+
+        def cell(m: Measured, floor: Measured) -> str:
+            return f"{m.instr / 1000:.1f}k ({m.instr / floor.instr:.2f}x)"
+
+        for key, label in summary:
+            simpy = got[(key, simpy_of[key])]
+            if key == "timeouts":
+                lines = [
+                    (
+                        "timeouts (timeout)",
+                        "asyncio.timeout, instant stock",
+                        None,
+                        "asyncio.timeout, sim loop",
+                    ),
+                    (
+                        "timeouts (wait_for)",
+                        "asyncio.wait_for, instant stock",
+                        None,
+                        "asyncio.wait_for, sim loop",
+                    ),
+                ]
+            else:
+                floor_name, clock_name, asyncio_name = columns[key]
+                lines = [(label, floor_name, clock_name, asyncio_name)]
+            for name, floor_name, clock_name, asyncio_name in lines:
+                floor = got[(key, floor_name)]
+                clock_cell = cell(got[(key, clock_name)], floor) if clock_name else "-"
+                wall_clock = _x(got[(key, clock_name)].ns / simpy.ns) if clock_name else "-"
+                asyncio_m = got[(key, asyncio_name)]
+                print(
+                    f"  {name:<20}{floor.instr / 1000:>7.1f}k{clock_cell:>16}"
+                    f"{cell(asyncio_m, floor):>17}{cell(simpy, floor):>16}"
+                    f"{wall_clock:>14}{_x(asyncio_m.ns / simpy.ns):>16}"
+                )
+
+    targets: list[Target] = []
+
+    def ratio(key: str, a: str, b: str) -> float:
+        return got[(key, a)].instr / got[(key, b)].instr
+
+    for key in ("fanout", "coincident"):
+        if key in parts:
+            tag = "fan-out" if key == "fanout" else "fan-out, whole ms"
+            targets.append(
+                Target(
+                    f"{tag}: clock.sleep / least future-based sleep",
+                    ratio(key, "clock.sleep", "least future-based sleep"),
+                    1.05,
+                )
+            )
+            targets.append(
+                Target(
+                    f"{tag}: asyncio.sleep (sim loop) / asyncio.sleep(0) floor",
+                    ratio(key, "asyncio.sleep, sim loop", "asyncio.sleep(0), stock loop"),
+                    1.4,
+                )
+            )
+    for key in ("rates", "rates-shared"):
+        if key in parts:
+            tag = "rate loops" + (", shared deadlines" if key == "rates-shared" else "")
+            targets.append(
+                Target(
+                    f"{tag}: clock.rate / asyncio.sleep(0) floor",
+                    ratio(key, "clock.rate", "asyncio.sleep(0) per tick, stock"),
+                    1.5,
+                )
+            )
+    if "timeouts" in parts:
+        for api in ("asyncio.timeout", "asyncio.wait_for"):
+            targets.append(
+                Target(
+                    f"timeouts: {api} (sim loop) / stock asyncio, instant time",
+                    ratio("timeouts", f"{api}, sim loop", f"{api}, instant stock"),
+                    1.2,
+                )
+            )
+    for hz, limit in ((100.0, 0.97), (240.0, 0.95)):
+        if hz in kuka_means:
+            targets.append(
+                Target(
+                    f"KUKA {hz:g} Hz control: hand-written loop / evclock (mean of seeds)",
+                    kuka_means[hz],
+                    limit,
+                    at_least=True,
+                )
+            )
+    if targets:
+        print("\ntargets (instructions, same run)")
+        for target in targets:
+            print(target.line())
+    print(f"\n(whole run: {time.monotonic() - started:.0f} s)")
     return 0
 
 

@@ -200,6 +200,7 @@ def test_user_channels_are_checked() -> None:
     evclock.tools.record("/mine", {"x": 1})  # no recording: nothing to write, no error
 
 
+@pytest.mark.pybullet  # the scenario (examples/shuttle_scenario.py) is a PyBullet one
 def test_recording_without_mcap_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "mcap.writer", None)
     result = runner.invoke(app, ["run", SHUTTLE, "--record", "x.mcap", "--quiet"])
