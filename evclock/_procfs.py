@@ -513,28 +513,15 @@ def far_end(fd: int) -> tuple[str, object] | None:
     pipe's inode (both ends share it), a connected Unix socket's peer inode (the kernel's
     ``sock_diag``), a connected IP socket's peer address. None when it is none of these or
     cannot be told."""
-    try:
-        st = os.fstat(fd)
-    except OSError:
-        return None
-    if stat.S_ISFIFO(st.st_mode):
-        return ("pipe", st.st_ino)
-    if not stat.S_ISSOCK(st.st_mode):
-        return None
-    try:
-        with socket.socket(fileno=os.dup(fd)) as sock:
-            if sock.family == socket.AF_UNIX:
-                peer = _unix_peer_inode(st.st_ino)
-                return None if peer is None else ("unix", peer)
-            if sock.family in (socket.AF_INET, socket.AF_INET6):
-                return ("ip", sock.getpeername())
-    except OSError:
-        return None
-    return None
+    return _end(fd, far=True)
 
 
 def near_end(fd: int) -> tuple[str, object] | None:
     """``fd``'s own end, named as :func:`far_end` names it from the other end."""
+    return _end(fd, far=False)
+
+
+def _end(fd: int, *, far: bool) -> tuple[str, object] | None:
     try:
         st = os.fstat(fd)
     except OSError:
@@ -546,9 +533,10 @@ def near_end(fd: int) -> tuple[str, object] | None:
     try:
         with socket.socket(fileno=os.dup(fd)) as sock:
             if sock.family == socket.AF_UNIX:
-                return ("unix", st.st_ino)
+                inode = _unix_peer_inode(st.st_ino) if far else st.st_ino
+                return None if inode is None else ("unix", inode)
             if sock.family in (socket.AF_INET, socket.AF_INET6):
-                return ("ip", sock.getsockname())
+                return ("ip", sock.getpeername() if far else sock.getsockname())
     except OSError:
         return None
     return None

@@ -55,26 +55,7 @@ def scale_duration_ns(ns: int, scale: float, significand_bits: int = 64) -> int:
     :param significand_bits: 53, 64 or 113.
     :returns: the scaled duration, integer nanoseconds.
     """
-    if ns == 0 or scale == 0.0:
-        return 0
-    if scale == 1.0 and (significand_bits > 53 or abs(ns).bit_length() <= 53):
-        return ns  # exact: the common age_penalty=0 case stays cheap
-    numerator, denominator = scale.as_integer_ratio()  # denominator: a power of two
-    shift = denominator.bit_length() - 1
-    if significand_bits == 53 and abs(ns).bit_length() > 53:
-        ns = int(float(ns))  # the int64 -> double conversion rounds (to nearest, ties even)
-    product = ns * numerator
-    negative = product < 0
-    magnitude = -product if negative else product
-    excess = magnitude.bit_length() - significand_bits
-    if excess > 0:
-        kept, rest = divmod(magnitude, 1 << excess)
-        half = 1 << (excess - 1)
-        if rest > half or (rest == half and kept & 1):
-            kept += 1
-        magnitude = kept << excess
-    truncated = magnitude >> shift
-    return -truncated if negative else truncated
+    return duration_scaler(scale, significand_bits)(ns)
 
 
 def duration_scaler(scale: float, significand_bits: int = 64) -> Callable[[int], int]:
