@@ -58,7 +58,7 @@ from evclock.outside._threads import (
     EVENT_LOOP_WAITS,
     check_thread_inference,
     could_call_back,
-    internal_count,
+    only_internal_threads,
 )
 from evclock.outside._work import EXACT, OutsideWork
 from evclock.time._time import MAX_TIME_NS, real_number
@@ -85,6 +85,7 @@ _DEADLOCK_CONFIRM = 0.02
 #: While an external source waits for the outside, ask it again this often (wall seconds)
 #: even if no I/O arrives, so that it can check its own liveness deadline.
 _EXTERNAL_POLL = 0.05
+_EXTERNAL_POLL_MS = round(_EXTERNAL_POLL * 1000)
 #: Seconds beyond which a float time cannot be sim time (2**63 - 1 ns): such a timer never fires.
 _MAX_TIME_S = MAX_TIME_NS / 1e9
 
@@ -278,6 +279,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # EXTERNAL-SOURCE HOOK: whether the source is external (it may name its fd:
         # TimeSource.io_fd).
         self._source_external = source.external
+        # wait_for_source's poll object: the source's fd and the self-pipe (built once).
+        self._source_poller: Any = None
+        self._source_poller_fd: int | None = None
         self._sim_clock: SimClock | None = None
 
     def create_future(self) -> asyncio.Future[Any]:
@@ -477,7 +481,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                     and not self._outside.active  # OUTSIDE HOOK: nothing outside at all
                     and (
                         (not _thread_limbo and len(_thread_registry) <= 1)
-                        or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
+                        or only_internal_threads()
                     )
                 ):
                     if self._held_since is not None:
@@ -568,11 +572,56 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             and len(self._io_map) == self._quiet_fds + 1
             and fd in self._io_map
             and not self._outside.active
-            and (
-                len(_thread_registry) + len(_thread_limbo) <= 1
-                or len(_thread_registry) + len(_thread_limbo) <= 1 + internal_count()
-            )
+            and only_internal_threads()
         )
+
+    def _outside_quiet(self) -> bool:
+        """OUTSIDE HOOK: nothing outside the loop holds sim time or could matter before it
+        moves but I/O whose owners account for it exactly (``account_fd``: a clock
+        server's listener and connections; it holds sim time itself while a participant
+        works): no other fd, no signal handler, no outside work, no other thread. Then
+        nothing is in flight (the survey of :meth:`held_horizon` would find nothing) and
+        no poll need come before time moves (:meth:`before_moving`): the owners read their
+        fds between callbacks, and hold time while what they read matters."""
+        io_map = self._io_map
+        accounted = self._accounted_fds
+        return (
+            not self._outside.active
+            and len(io_map) == self._quiet_fds + len(accounted)
+            and accounted <= io_map.keys()
+            and only_internal_threads()
+        )
+
+    def wait_for_source(self) -> bool:
+        """EXTERNAL-SOURCE HOOK: the loop's wait for its external source, taken by the source
+        inside :meth:`~evclock.kernel.TimeSource.advance` so that the news it waits for (a
+        clock server's grant) is read and used in the same call.
+
+        Only when the source is alone (:meth:`_source_alone`: nothing else outside the loop
+        could wake a task, so the loop itself would wait for exactly this fd next): block
+        until the source's fd is readable or the loop's self-pipe is (a signal, a
+        ``call_soon_threadsafe``), at most as long as the loop's own wait for the source
+        (50 ms: the source then checks its liveness deadline, as after that wait).
+
+        :returns: True when the source's fd is readable (read it now); False when the source
+            is not alone, the wait timed out, or something woke the loop (the source then
+            returns "no news" and the loop waits and serves I/O as usual).
+        """
+        if not self._source_alone():
+            return False
+        fd = self._source.io_fd
+        assert fd is not None  # _source_alone: the source named its fd
+        poller = self._source_poller
+        if poller is None or self._source_poller_fd != fd:
+            poller = self._source_poller = select.poll()
+            poller.register(fd, select.POLLIN)
+            poller.register(self._self_pipe_fd, select.POLLIN)
+            self._source_poller_fd = fd
+        events = poller.poll(_EXTERNAL_POLL_MS)
+        for ready_fd, _ in events:
+            if ready_fd == self._self_pipe_fd:
+                return False  # the loop was woken: it reads the self-pipe and decides
+        return bool(events)  # the source's fd: the only other one polled
 
     def _unaccounted_io(self) -> Any:
         """EXTERNAL-SOURCE HOOK: the registered I/O whose unread bytes may be inferred as
@@ -604,8 +653,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         child processes, bytes in flight, busy threads: :mod:`evclock.outside`): None,
         nothing; else how far sim time may still move (threads held only in timed waits of
         known length: up to the first of their ends; 0 otherwise). The kernel decides."""
-        if self._source_external and self._source_alone():
-            self._holder = None  # EXTERNAL-SOURCE HOOK: nothing outside but the source
+        if (self._source_external and self._source_alone()) or self._outside_quiet():
+            self._holder = None  # nothing outside but the source, or accounted I/O
             return None
         outside = self._outside
         holder = self._holder = outside.holder(timed_waits_hold=not paused)
@@ -620,8 +669,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self-pipe as an alarm hold ends) are taken in first; the kernel finds their callbacks
         ready and does not advance. So this polls even when no callback ran since the last
         poll."""
-        if len(self._io_map) > self._quiet_fds and not (
-            self._source_external and self._source_alone()
+        if (
+            len(self._io_map) > self._quiet_fds
+            and not (self._source_external and self._source_alone())
+            and not self._outside_quiet()
         ):
             if self._epoll:
                 self._hand_over_tty_input()

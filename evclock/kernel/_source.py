@@ -79,7 +79,8 @@ class TimeSource(abc.ABC):
     free_running: bool = False
 
     #: True when time comes from outside the process (another simulation, a ROS 2 /clock):
-    #: :meth:`advance` never blocks and may return the time unchanged ("no news yet"); the
+    #: :meth:`advance` does not wait on its own (but see :attr:`io_fd`) and may return the
+    #: time unchanged ("no news yet"); the
     #: host then waits for I/O - the source's messages arrive through the loop (a reader
     #: registered with ``loop.add_reader``, or ``loop.call_soon_threadsafe`` from a foreign
     #: thread), which then calls ``host.time_arrived()`` - and asks again (also every 50 ms
@@ -94,7 +95,10 @@ class TimeSource(abc.ABC):
     #: fd is the only I/O and nothing else runs outside the loop, the loop asks the
     #: source directly instead of polling first, and does not count the fd's unread bytes
     #: as work in flight: the source reads the fd itself in :meth:`advance` if it needs
-    #: to, and answers for what travels on it.
+    #: to, and answers for what travels on it. It may then also take the loop's own wait
+    #: for that fd inside :meth:`advance` (``SimEventLoop.wait_for_source()``: bounded,
+    #: and ended by anything that wakes the loop), and use what it reads at once: the
+    #: clock server's participant waits for its grant this way.
     io_fd: int | None = None
 
     _host: SourceHost | None = None

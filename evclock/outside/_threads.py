@@ -42,6 +42,8 @@ from evclock._cpython import (
     current_frames,
     gil_enabled,
     pool_worker_queue,
+    thread_limbo,
+    thread_registry,
 )
 from evclock._errors import InvalidArgumentError
 from evclock._procfs import (
@@ -170,18 +172,38 @@ def thread_state(thread: threading.Thread, frame: FrameType | None) -> ThreadSta
     return _state_from_frames(frame)
 
 
-#: evclock's own helper threads (the pytest plugin's watchdog): they never call the loop back.
-_internal: weakref.WeakSet[threading.Thread] = weakref.WeakSet()
+#: evclock's own helper threads (the pytest plugin's watchdog, the clock server's): they
+#: never call the loop back. Weak references in a plain list: read on every advance of a
+#: loop beside one (a WeakSet's iteration costs a dozen Python calls), pruned as they die.
+_internal: list[weakref.ref[threading.Thread]] = []
 
 
 def mark_internal(thread: threading.Thread) -> None:
     """Declare ``thread`` one of evclock's helpers: it can neither hold nor resume sim time."""
-    _internal.add(thread)
+    _internal[:] = [ref for ref in _internal if ref() is not None]
+    _internal.append(weakref.ref(thread))
+
+
+def _is_internal(thread: threading.Thread) -> bool:
+    return any(ref() is thread for ref in _internal)
 
 
 def internal_count() -> int:
-    """How many of evclock's helper threads are alive (they do not count as outside work)."""
-    return sum(1 for thread in list(_internal) if thread.is_alive())
+    """How many of evclock's helper threads are running (in the interpreter's registry of
+    running threads, as :func:`only_internal_threads` counts them)."""
+    registry = thread_registry
+    count = 0
+    for ref in _internal:
+        thread = ref()
+        if thread is not None and registry.get(thread.ident) is thread:  # type: ignore[arg-type]
+            count += 1
+    return count
+
+
+def only_internal_threads() -> bool:
+    """No thread runs (or is starting) but the calling one and evclock's own helpers."""
+    others = len(thread_registry) + len(thread_limbo) - 1
+    return others <= 0 or others <= internal_count()
 
 
 def other_threads(loop_thread_id: int | None) -> list[threading.Thread]:
@@ -189,7 +211,7 @@ def other_threads(loop_thread_id: int | None) -> list[threading.Thread]:
     return [
         t
         for t in threading.enumerate()
-        if t.ident is not None and t.ident != loop_thread_id and t not in _internal
+        if t.ident is not None and t.ident != loop_thread_id and not _is_internal(t)
     ]
 
 

@@ -345,6 +345,14 @@ class RemoteClockSource(TimeSource):
                 # The round's data went into _out before: one send carries data and DONE.
                 self._send(proto.done(now, proto.NO_DEADLINE if target_ns is None else target_ns))
                 self._waiting_since = time.monotonic()
+                # The round's fast path: with nothing else outside the loop, wait for the
+                # grant here and use it at once (the loop would wait for this fd next).
+                if self._granted is None and not self._writing and self._loop.wait_for_source():
+                    self._on_readable()
+                    if self._lost is not None:
+                        raise self._lost
+                    if self._now != now:
+                        return self._now  # a jump came with it: its woken tasks run first
             granted = self._granted
             if granted is not None:
                 self._granted = None
