@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from _remote_helpers import finish, spawn
+from _remote_helpers import finish, read_line, spawn
 
 import evclock
 from evclock.remote import _protocol as proto
@@ -206,6 +206,110 @@ def test_a_lockstep_round_costs_the_server_no_zero_timeout_poll(tmp_path: Path) 
     # A few around the join and the leave, at most two per keepalive (one callback between
     # two rounds); none per round (one per round before the round path, three before that).
     assert zero_polls <= 10 + 2 * keepalives, (zero_polls, keepalives)
+
+
+COUNTING_TICKER = """
+import asyncio, json, sys, evclock
+
+async def main():
+    loop = asyncio.get_running_loop()
+    clock = evclock.clock()
+    await clock.sleep(0.001)
+    selects = 0
+    select = loop._selector.select
+
+    def counting_select(timeout=None):
+        nonlocal selects
+        selects += 1
+        return select(timeout)
+
+    loop._selector.select = counting_select
+    for _ in range(int(sys.argv[1])):
+        await clock.sleep(0.001)
+    print(json.dumps({"selects": selects, "now": clock.now().nanoseconds}))
+
+evclock.run(main())
+"""
+
+
+def test_a_lockstep_participant_waits_for_its_grant_inside_the_advance(tmp_path: Path) -> None:
+    """A participant with nothing else outside its loop waits for the grant in the loop's
+    request to advance (SimEventLoop.wait_for_source) and moves at once: its loop's selector
+    is not polled per round (it was, once or twice, before). Only the server's keepalives
+    (every 0.2 s of wall time, read through the loop) and the leave may poll it."""
+    url = address(tmp_path)
+    rounds = 300
+    proc = spawn(tmp_path, COUNTING_TICKER, str(rounds), EVCLOCK_CLOCK=f"{url}?name=ticker")
+    keepalives = 0
+
+    async def main() -> None:
+        async with evclock.remote.serve(url) as server:
+            keepalive = server._keepalive
+
+            def counting_keepalive() -> None:
+                nonlocal keepalives
+                keepalives += 1
+                keepalive()
+
+            server._keepalive = counting_keepalive  # type: ignore[method-assign]
+            await server.wait_for_participants("ticker")
+            await server.wait_until_left()
+
+    evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err
+    seen = json.loads(out)
+    assert seen["now"] == (rounds + 1) * 1_000_000
+    assert seen["selects"] <= 5 + 2 * keepalives, (seen, keepalives)
+
+
+WAITS_FOR_A_GRANT = """
+import evclock
+
+async def main():
+    clock = evclock.clock()
+    await clock.sleep(0.001)
+    print("waiting", flush=True)
+    await clock.sleep(0.001)  # the simulation holds its time before this deadline
+
+evclock.run(main())
+"""
+
+
+def test_ctrl_c_ends_a_lockstep_participant_waiting_for_its_grant(tmp_path: Path) -> None:
+    """The participant's wait for a grant inside its advance is ended by a signal, as the
+    loop's own wait is: Ctrl-C (SIGINT) ends it while the simulation withholds the grant."""
+    import signal
+    import time
+
+    url = address(tmp_path)
+    proc = spawn(tmp_path, WAITS_FOR_A_GRANT, EVCLOCK_CLOCK=f"{url}?name=waiter")
+
+    def interrupt_while_held() -> tuple[int | None, float]:
+        assert read_line(proc) == "waiting\n"
+        proc.send_signal(signal.SIGINT)
+        start = time.monotonic()
+        try:
+            code = proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            return None, time.monotonic() - start
+        return code, time.monotonic() - start
+
+    async def main() -> tuple[int | None, float]:
+        loop = asyncio.get_running_loop()
+        async with evclock.remote.serve(url, on_fault="drop") as server:
+            await server.wait_for_participants("waiter")
+            await evclock.clock().sleep(0.0015)
+            # An executor job holds sim time at 1.5 ms: the grant of 2 ms never comes.
+            result = await loop.run_in_executor(None, interrupt_while_held)
+            await server.wait_until_left()
+            return result
+
+    code, waited = evclock.run(main())
+    _, err = proc.communicate(timeout=60)
+    assert code is not None, f"the participant ignored SIGINT for {waited:.1f} s"
+    assert code != 0
+    assert "KeyboardInterrupt" in err, err
 
 
 @pytest.mark.pybullet
