@@ -223,9 +223,27 @@ def _number(value: object) -> bool:
     return (
         isinstance(value, int | float)
         and not isinstance(value, bool)
+        and abs(value) < 1e300  # first: an integer too large for a float fails here
         and math.isfinite(value)
-        and abs(value) < 1e300
     )
+
+
+_NUMBER_TYPES: Final = frozenset({int, float})
+
+
+def _all_finite(items: list[Any]) -> bool:
+    """Whether every item passes :func:`_number`, in a few passes of C (a command's
+    vectors are checked on every round); False sends the caller to the item-by-item check,
+    which names the first bad one."""
+    if not items:
+        return True
+    if not _NUMBER_TYPES.issuperset(map(type, items)):
+        return False  # a bool, a string, a nested list, a subclass...
+    try:
+        # NaN or infinity anywhere makes the sum so; max() alone could skip a NaN.
+        return math.isfinite(sum(map(abs, items))) and max(map(abs, items)) < 1e300
+    except OverflowError:
+        return False  # an integer too large for a float
 
 
 class _Checker:
@@ -258,7 +276,10 @@ class _Checker:
         return value
 
     def _floats(self, param: str, value: object, size: int | None = None) -> None:
-        for item in self._list(param, value, size):
+        items = self._list(param, value, size)
+        if _all_finite(items):
+            return
+        for item in items:
             if not _number(item):
                 raise _bad(self._name, param, f"must hold finite numbers, got {item!r}")
 
@@ -341,13 +362,21 @@ class _Checker:
                 raise _bad(self._name, param, f"{value!r} is not WORLD_FRAME or LINK_FRAME")
 
 
+#: Per served function: its parameters' kinds by name, and their names in order.
+_PARAMETERS: Final[dict[str, tuple[dict[str, str], list[str]]]] = {
+    name: (
+        dict(param.split(":", 1) for param in params),
+        [param.split(":", 1)[0] for param in params],
+    )
+    for name, params in SIGNATURES.items()
+}
+
+
 def _bind(
     name: str, args: list[Any], kwargs: dict[str, Any]
 ) -> tuple[dict[str, str], dict[str, Any]]:
     """The request's arguments by parameter name; unknown or doubled ones are refused."""
-    params = SIGNATURES[name]
-    kinds = dict(param.split(":", 1) for param in params)
-    order = [param.split(":", 1)[0] for param in params]
+    kinds, order = _PARAMETERS[name]
     if len(args) > len(order):
         raise InvalidArgumentError(
             f"pybullet.{name} takes at most {len(order)} arguments here, got {len(args)}"
