@@ -269,6 +269,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         )
         #: What held sim time at the last held_horizon() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
+        # held_horizon() found nothing outside but an external source's own connection or
+        # I/O whose owners account for it: before_moving(), asked next, need not poll.
+        self._outside_silent = False
         # EXTERNAL-SOURCE HOOK: fds whose traffic their owner accounts for exactly (the
         # clock server's participant connections): not inferred as work in flight.
         self._accounted_fds: set[int] = set()  # membership only, never iterated
@@ -655,7 +658,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         known length: up to the first of their ends; 0 otherwise). The kernel decides."""
         if (self._source_external and self._source_alone()) or self._outside_quiet():
             self._holder = None  # nothing outside but the source, or accounted I/O
+            self._outside_silent = True  # for before_moving, which the kernel asks next
             return None
+        self._outside_silent = False
         outside = self._outside
         holder = self._holder = outside.holder(timed_waits_hold=not paused)
         if holder is None:
@@ -668,12 +673,9 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         just delivered while the thread went back to waiting; a signal's byte on the
         self-pipe as an alarm hold ends) are taken in first; the kernel finds their callbacks
         ready and does not advance. So this polls even when no callback ran since the last
-        poll."""
-        if (
-            len(self._io_map) > self._quiet_fds
-            and not (self._source_external and self._source_alone())
-            and not self._outside_quiet()
-        ):
+        poll. Not when :meth:`held_horizon`, asked just before in the same advance, found
+        nothing outside but the source's connection or I/O whose owners account for it."""
+        if not self._outside_silent and len(self._io_map) > self._quiet_fds:
             if self._epoll:
                 self._hand_over_tty_input()
             self._poll_io(0)
