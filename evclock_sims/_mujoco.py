@@ -166,7 +166,11 @@ class MuJoCoWorld:
         self.model: Any = None
         """The ``mujoco.MjModel``, once loaded."""
         self.data: Any = None
-        """Its ``mujoco.MjData``, once loaded."""
+        """Its ``mujoco.MjData``, once loaded. The engine-facing code of a scenario reads
+        and writes the simulated state through this attribute only (never a reference kept
+        aside): in the controller process of a split run (``evclock control --engine
+        mujoco``) it is replaced by a stand-in that forwards those reads and writes to the
+        simulation process, while :attr:`model` stays this process's own."""
         self.mj: Any = mujoco()
         """The ``mujoco`` module."""
         self._source: Any = None

@@ -10,6 +10,7 @@ clock="unix://...")`` and follows it or runs in lockstep with it.
 * :mod:`._server` serves a :class:`~evclock.SimEventLoop`'s time (follow and lockstep);
 * :mod:`._participant` is the time source of a process that joins (``clock="unix://..."``);
 * :mod:`._physics` lets scenario controllers call PyBullet in the simulation process.
+* :mod:`._mujoco_physics` lets them read and write MuJoCo's ``MjData`` there.
 
 
 Layer: above the hosts (the server lives on a ``SimEventLoop``; the participant is a time

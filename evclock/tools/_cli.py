@@ -293,11 +293,6 @@ def run_command(
             )
         if remote_controllers and serve is None:
             raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
-        if serve is not None and engine != "pybullet":
-            raise InvalidArgumentError(
-                f"--serve runs the scenario on PyBullet; --engine {engine} is not supported "
-                "with it yet: drop --serve, or use --engine pybullet"
-            )
         if serve is not None and values:
             raise InvalidArgumentError(
                 "--serve runs the scenario as registered: drop --param "
@@ -321,6 +316,7 @@ def run_command(
                     wall=wall,
                     progress=progress,
                     record=record,
+                    engine=engine,
                 )
             else:
                 report = run_scenario(

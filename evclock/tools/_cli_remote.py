@@ -4,7 +4,9 @@
 ``--remote-controllers`` the simulation process runs only the world and its physics and
 waits for the scenario's controllers, which ``evclock control`` runs in another process in
 lockstep: they build the same scenario object (on a private copy of the world, only for its
-attributes), then drive the served physics through :class:`RemotePhysics`. At the end the
+attributes), then drive the served physics: on PyBullet through :class:`RemotePhysics`
+(``scenario.pb``), on MuJoCo through :class:`RemoteMjData` (the world's ``data``; their copy
+of the model serves their own kinematics). At the end the
 controllers hand their verdict (success, summary, loop statistics) to the simulation, so
 both ends report the same run. The simulation process alone writes its report and exit
 status: it accepts that verdict only from the lockstep participant it waited for, once and
@@ -21,7 +23,7 @@ import math
 import time
 import urllib.parse
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
 
@@ -31,6 +33,7 @@ from evclock.hosts._current import clock
 from evclock.hosts._loop import SimEventLoop
 from evclock.hosts._runner import run as evclock_run
 from evclock.remote._address import parse_address
+from evclock.remote._mujoco_physics import MjDataService, RemoteMjData
 from evclock.remote._participant import participant
 from evclock.remote._physics import PhysicsService, RemotePhysics
 from evclock.remote._server import DEFAULT_STEP_TIMEOUT, Message, serve
@@ -69,14 +72,16 @@ def serve_scenario(
     on_fault: str = "abort",
     step_timeout: float | None = DEFAULT_STEP_TIMEOUT,
     record: Path | None = None,
+    engine: str = "pybullet",
 ) -> RunReport:
     """Run scenario ``name`` serving its sim time at ``address`` (see the module docstring).
 
     ``record`` (and a live view, see :func:`evclock.tools._record.live_view`): the simulation
     writes the world's channels (state, joints, transforms, scene) and, when the controllers
-    run here, their loops and channels too.
+    run here, their loops and channels too. ``engine``: ``"pybullet"`` (default) or
+    ``"mujoco"`` (see :func:`~evclock.tools._scenarios.open_engine`); the served info names
+    it, and ``evclock control`` refuses to join with another.
     """
-    from evclock.sources import PyBulletTimeSource
     from evclock.tools._runs import (
         RunReport,
         _loop_reports,
@@ -84,13 +89,17 @@ def serve_scenario(
         install_step_hooks,
         scenario_class,
     )
+    from evclock.tools._scenarios import check_engine, open_world
 
     if wall:
         raise InvalidArgumentError("--serve serves sim time: drop --wall")
     cls = scenario_class(name, {})
+    check_engine(cls, engine)
+    if engine != "pybullet" and record is not None:
+        raise InvalidArgumentError(f"--record runs on PyBullet only: drop --engine {engine}")
     limit = _limit(cls, until)
-    source = PyBulletTimeSource.connect(gui=gui)
-    scenario = cls(source.client, seed)
+    opened, scenario = open_world(cls, seed, engine=engine, gui=gui)
+    source: Any = opened  # PyBullet's or MuJoCo's: a stepping source either way
     install_step_hooks(scenario, source)  # the world's per-step hooks run with the physics
     from evclock.tools._record import open_recorder  # --record/--foxglove: the simulation's
 
@@ -98,6 +107,7 @@ def serve_scenario(
     info = {
         "scenario": cls.name,
         "seed": seed,
+        "engine": engine,
         "until": limit,
         "remote_controllers": remote_controllers,
     }
@@ -122,7 +132,10 @@ def serve_scenario(
         async with serve(
             address, info=info, on_fault=on_fault, step_timeout=step_timeout
         ) as server:
-            PhysicsService(source.client).install(server)
+            if engine == "mujoco":
+                MjDataService(scenario.world.data).install(server)
+            else:
+                PhysicsService(source.client).install(server)
             server.provide(STATE_SERVICE, lambda _: json.dumps(scenario.state_vector()).encode())
             server.subscribe(REPORT_TOPIC, receive_report)
             if progress is not None:
@@ -162,6 +175,7 @@ def serve_scenario(
             scenario=cls.name,
             seed=seed,
             mode="sim",
+            engine=engine,
             success=handed["success"]
             if remote_controllers
             else outcome.error is None and scenario.success(),
@@ -232,11 +246,34 @@ def _with_name(url: str, name: str) -> str:
     return f"{url}{'&' if '?' in url else '?'}{urllib.parse.urlencode({'name': name})}"
 
 
+def _private_copy(cls: type[Any], seed: int, engine: str) -> Any:
+    """Scenario ``cls`` built on a private copy of its world: the controllers' attributes
+    (targets, gains...) and, on MuJoCo, the model their own kinematics run on."""
+    if engine == "mujoco":
+        from evclock.tools._scenarios import open_engine
+
+        _, world = open_engine(cls, engine)
+        return cls(world, seed)
+    p = import_extra("pybullet", "pybullet", needed_by="evclock control")
+    local = p.connect(p.DIRECT)
+    try:
+        return cls(local, seed)
+    finally:
+        p.disconnect(local)
+
+
 def control_scenario(
-    name: str, *, clock_url: str, seed: int = 0, until: float | None = None
+    name: str,
+    *,
+    clock_url: str,
+    seed: int = 0,
+    until: float | None = None,
+    engine: str = "pybullet",
 ) -> RunReport:
-    """Run scenario ``name``'s controllers against the simulation served at ``clock_url``."""
+    """Run scenario ``name``'s controllers against the simulation served at ``clock_url``
+    (which must run the same scenario, seed and ``engine``)."""
     from evclock.tools._runs import RunReport, _loop_reports, _Outcome, scenario_class
+    from evclock.tools._scenarios import check_engine
 
     scheme = urllib.parse.urlsplit(clock_url).scheme if isinstance(clock_url, str) else None
     if scheme not in ("unix", "tcp"):
@@ -248,13 +285,9 @@ def control_scenario(
         )
     parse_address(clock_url)  # the address's own errors, before anything is built
     cls = scenario_class(name, {})
-    p = import_extra("pybullet", "pybullet", needed_by="evclock control")
+    check_engine(cls, engine)
     limit = _limit(cls, until)
-    local = p.connect(p.DIRECT)  # a private copy of the world: builds the scenario object only
-    try:
-        scenario = cls(local, seed)
-    finally:
-        p.disconnect(local)
+    scenario = _private_copy(cls, seed, engine)
 
     async def main() -> RunReport:
         link = participant()
@@ -272,7 +305,17 @@ def control_scenario(
                 f"the simulation at {link.address} runs {served[0]!r} with seed {served[1]}, "
                 f"but these controllers are {cls.name!r} with seed {seed}; use the same on both"
             )
-        scenario.pb = RemotePhysics(link)
+        served_engine = link.info.get("engine", "pybullet")  # (servers before MuJoCo: none)
+        if served_engine != engine:
+            raise InvalidArgumentError(
+                f"the simulation at {link.address} runs {served[0]!r} on {served_engine}, but "
+                f"these controllers are for {engine}; use the same engine on both (--engine "
+                f"{served_engine})"
+            )
+        if engine == "mujoco":  # the world's data is the simulation's; its model stays here
+            scenario.world.data = RemoteMjData(link, scenario.world.data)
+        else:
+            scenario.pb = RemotePhysics(link)
         clk = clock()
         wall0 = time.perf_counter()
         outcome = _Outcome()
@@ -284,6 +327,7 @@ def control_scenario(
             scenario=cls.name,
             seed=seed,
             mode="sim",
+            engine=engine,
             success=outcome.error is None and scenario.success(),
             finished=finished,
             sim_time_s=sim_s,
@@ -313,6 +357,10 @@ def control_command(
         float | None, typer.Option(help="Stop after this many seconds (default: the scenario's).")
     ] = None,
     seed: Annotated[int, typer.Option(help="The seed the simulation was started with.")] = 0,
+    engine: Annotated[
+        Literal["pybullet", "mujoco"],
+        typer.Option(help="The physics engine the simulation runs (its --engine)."),
+    ] = "pybullet",
     json_out: Annotated[
         Path | None, typer.Option("--json", help="Also write the report as JSON to this file.")
     ] = None,
@@ -336,7 +384,7 @@ def control_command(
     try:
         check_seed(seed)
         check_until(until)
-        report = control_scenario(sim, clock_url=clock_url, seed=seed, until=until)
+        report = control_scenario(sim, clock_url=clock_url, seed=seed, until=until, engine=engine)
     except EvClockError as exc:
         print_error(exc)
         raise typer.Exit(2) from None

@@ -14,7 +14,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 import typer
 from rich.console import Console
@@ -186,7 +186,8 @@ def render_sweep(
     summary = result.summary()
     rate = summary["success_rate"]
     counts = ", ".join(f"{n} {status}" for status, n in summary["status_counts"].items())
-    head = f"{result.name}: {summary['done']}/{summary['planned']} runs ({counts})"
+    engine = "" if result.engine == "pybullet" else f" on {result.engine}"
+    head = f"{result.name}{engine}: {summary['done']}/{summary['planned']} runs ({counts})"
     if result.resumed:
         head += f", {result.resumed} from the earlier sweep in --out"
     if result.interrupted:
@@ -323,6 +324,10 @@ def sweep_command(
     until: Annotated[
         float | None, typer.Option(help="Sim seconds per run (default: the scenario's).")
     ] = None,
+    engine: Annotated[
+        Literal["pybullet", "mujoco"],
+        typer.Option(help="Physics engine of every run: PyBullet, or MuJoCo (kuka, cartpole)."),
+    ] = "pybullet",
     backend: Annotated[str, typer.Option(help="local (process pool) or ray.")] = "local",
     workers: Annotated[int, typer.Option(help="Runs at the same time.")] = 1,
     address: Annotated[
@@ -428,7 +433,7 @@ def sweep_command(
             if seed is not None
             else parse_seeds(seeds or "10", count=True)
         )
-        specs = plan(scenario, chosen, parse_params(scenario, param or []), until)
+        specs = plan(scenario, chosen, parse_params(scenario, param or []), until, engine)
         done = 0 if directory is None else len(directory.finished(specs))
         display = SweepProgress(console, len(specs), quiet, done=done)
         with display.progress:

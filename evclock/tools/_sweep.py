@@ -9,8 +9,9 @@ that order whatever order the runs finish in:
 - ``ray``: one Ray task per run, on a worker process that exits after it (``max_calls=1``),
   on the cluster at ``address`` or on a local Ray started for the sweep and stopped after it.
 
-Every run is :func:`evclock.tools._runs.run_scenario` with its own physics client, so the row of
-seed ``k`` equals ``evclock run SCENARIO --seed k`` bit for bit. A scenario exception or a
+Every run is :func:`evclock.tools._runs.run_scenario` with its own physics client (or MuJoCo
+world: the specs' ``engine``), so the row of seed ``k`` equals ``evclock run SCENARIO --seed k
+[--engine E]`` bit for bit. A scenario exception or a
 crashed worker is a failed row with the error (the root exception, not the ``ExceptionGroup``
 of the scenario's task group); Ctrl-C (``KeyboardInterrupt``) stops the running workers and
 returns the rows that finished, marked ``interrupted``.
@@ -48,6 +49,7 @@ from typing import Any, Literal
 from evclock._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
 from evclock.tools._scenarios import (
     ParamValue,
+    check_engine,
     is_file_reference,
     load_scenario,
     split_file_reference,
@@ -69,12 +71,14 @@ class RunSpec:
     :ivar seed: the seed of the run.
     :ivar params: the scenario parameters set for the run.
     :ivar until: sim seconds to run at most (None: the scenario's default).
+    :ivar engine: the physics engine, ``"pybullet"`` (default) or ``"mujoco"``.
     """
 
     scenario: str
     seed: int
     params: dict[str, ParamValue]
     until: float | None = None
+    engine: str = "pybullet"
 
     def command(self) -> str:
         """The ``evclock run`` command line that reproduces this run."""
@@ -83,6 +87,8 @@ class RunSpec:
             words += ["--param", f"{name}={_format_param(value)}"]
         if self.until is not None:
             words += ["--until", f"{self.until!r}"]
+        if self.engine != "pybullet":
+            words += ["--engine", self.engine]
         return shlex.join(words)
 
 
@@ -124,14 +130,19 @@ class SweepRow:
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> SweepRow:
-        """The row :meth:`to_json` (with ``scenario`` and ``until`` added) describes.
+        """The row :meth:`to_json` (with ``scenario``, ``until`` and ``engine`` added)
+        describes (a row without ``engine``, written before sweeps ran on MuJoCo: PyBullet).
 
         :param data: a line of a sweep's ``runs.jsonl``.
         :returns: the row.
         :raises KeyError: a field is missing.
         """
         spec = RunSpec(
-            str(data["scenario"]), int(data["seed"]), dict(data["params"]), data["until"]
+            str(data["scenario"]),
+            int(data["seed"]),
+            dict(data["params"]),
+            data["until"],
+            str(data.get("engine", "pybullet")),
         )
         return cls(spec, str(data["status"]), data["report"], data["error"])
 
@@ -148,6 +159,7 @@ class SweepResult:
     :ivar wall_time_s: wall seconds the sweep took.
     :ivar resumed: how many rows came from an earlier sweep in the same output directory.
     :ivar swept: the parameters given several values.
+    :ivar engine: the physics engine every run ran on.
     """
 
     scenario: str
@@ -162,6 +174,8 @@ class SweepResult:
     """How many rows came from an earlier, interrupted sweep in the same directory."""
     swept: tuple[str, ...] = ()
     """The parameters given several values (the configurations differ in them)."""
+    engine: str = "pybullet"
+    """The physics engine every run ran on: ``pybullet`` or ``mujoco``."""
 
     @property
     def failed(self) -> list[SweepRow]:
@@ -177,6 +191,7 @@ class SweepResult:
             for key, value in numeric_fields(row.report).items():
                 fields.setdefault(key, []).append(value)
         return {
+            "engine": self.engine,
             "planned": self.planned,
             "done": done,
             "success_rate": counts["success"] / done if done else None,
@@ -252,6 +267,7 @@ class SweepResult:
         return {
             "scenario": self.scenario,
             "name": self.name,
+            "engine": self.engine,
             "summary": self.summary(),
             "rows": [row.to_json() for row in self.rows],
         }
@@ -329,11 +345,12 @@ def _params_key(params: dict[str, ParamValue]) -> str:
 
 def _spec_key(spec: RunSpec) -> str:
     data = {"scenario": spec.scenario, "seed": spec.seed, "params": spec.params}
-    return json.dumps({**data, "until": spec.until}, sort_keys=True)
+    return json.dumps({**data, "until": spec.until, "engine": spec.engine}, sort_keys=True)
 
 
 def _row_record(row: SweepRow) -> dict[str, Any]:
-    return {"scenario": row.spec.scenario, "until": row.spec.until, **row.to_json()}
+    spec = row.spec
+    return {"scenario": spec.scenario, "until": spec.until, "engine": spec.engine, **row.to_json()}
 
 
 RUNS_FILE = "runs.jsonl"
@@ -370,8 +387,8 @@ class SweepDirectory:
 
         :param specs: the planned runs.
         :returns: the finished ones' rows (a run listed twice: its last line).
-        :raises InvalidArgumentError: ``runs.jsonl`` holds a run of another scenario, or a
-            line that is not a run (the directory is not this sweep's).
+        :raises InvalidArgumentError: ``runs.jsonl`` holds a run of another scenario or on
+            another engine, or a line that is not a run (the directory is not this sweep's).
         """
         if not self.runs.exists():
             return {}
@@ -394,6 +411,11 @@ class SweepDirectory:
                 raise InvalidArgumentError(
                     f"--out {str(self.path)!r} holds a sweep of {row.spec.scenario!r}, not "
                     f"{specs[0].scenario!r}; give another directory"
+                )
+            if specs and row.spec.engine != specs[0].engine:
+                raise InvalidArgumentError(
+                    f"--out {str(self.path)!r} holds a sweep on {row.spec.engine}, not on "
+                    f"{specs[0].engine}; give another directory"
                 )
             where = index.get(_spec_key(row.spec))
             if where is not None:
@@ -490,6 +512,7 @@ def plan(
     seeds: Sequence[int],
     params: dict[str, list[ParamValue]] | None = None,
     until: float | None = None,
+    engine: str = "pybullet",
 ) -> list[RunSpec]:
     """Every combination of parameter values (in the order given) times every seed.
 
@@ -497,6 +520,8 @@ def plan(
     :param seeds: the seeds each combination runs with.
     :param params: the values to try, by parameter name (None: the defaults only).
     :param until: sim seconds each run lasts at most (None: the scenario's default).
+    :param engine: the physics engine every run uses, ``"pybullet"`` (default) or
+        ``"mujoco"`` (checked against the scenario by :func:`sweep`).
     :returns: one :class:`RunSpec` per combination and seed.
     :raises InvalidArgumentError: ``seeds`` is empty, or ``until`` is not a positive number.
 
@@ -518,7 +543,7 @@ def plan(
     specs = []
     for combination in itertools.product(*(params[name] for name in names)):
         values = dict(zip(names, combination, strict=True))
-        specs += [RunSpec(scenario, seed, values, until) for seed in seeds]
+        specs += [RunSpec(scenario, seed, values, until, engine) for seed in seeds]
     return specs
 
 
@@ -528,7 +553,13 @@ def execute(spec: RunSpec) -> dict[str, Any]:
 
     import_pybullet_quietly()  # on a Ray worker, the first run imports it
     try:
-        report = run_scenario(spec.scenario, seed=spec.seed, params=spec.params, until=spec.until)
+        report = run_scenario(
+            spec.scenario,
+            seed=spec.seed,
+            params=spec.params,
+            until=spec.until,
+            engine=spec.engine,
+        )
     except Exception as exc:
         return {"error": describe_exception(exc), "traceback": traceback.format_exc()}
     return {"report": report.to_json()}
@@ -576,7 +607,8 @@ def _run_local(
     on_idle: OnIdle,
 ) -> None:
     context = multiprocessing.get_context("forkserver")
-    preload = ["evclock.tools._runs", "evclock.tools._sweep", "pybullet"]
+    # (the engine's module too: imported once, in the server every worker is forked from)
+    preload = ["evclock.tools._runs", "evclock.tools._sweep", specs[0].engine]
     if not is_file_reference(specs[0].scenario):
         # The scenario's module is importable by name: import it once, in the server every
         # worker is forked from.
@@ -769,7 +801,8 @@ def sweep(
         planned runs already there are not run again (see :class:`SweepDirectory`).
     :returns: the :class:`SweepResult` (a Ctrl-C returns the rows finished so far).
     :raises InvalidArgumentError: an unknown ``backend``, ``workers`` below 1, ``address``
-        without Ray, no ``specs``, a bad ``run_timeout``, or an unknown scenario.
+        without Ray, no ``specs``, a bad ``run_timeout``, an unknown scenario, or an engine
+        the scenario does not run on (or several engines).
     :raises InvalidTypeError: ``workers`` is not an int.
     :raises ScenarioError: the scenario cannot be imported.
     :raises MissingExtraError: ``backend="ray"`` without Ray (``pip install 'evclock[ray]'``).
@@ -799,7 +832,15 @@ def sweep(
             f"--run-timeout must be a positive number of wall seconds, got {run_timeout!r}"
         )
     specs = [_absolute(spec) for spec in specs]
-    name = str(load_scenario(specs[0].scenario).name)
+    cls = load_scenario(specs[0].scenario)
+    engines = list(dict.fromkeys(spec.engine for spec in specs))
+    if len(engines) > 1:
+        raise InvalidArgumentError(
+            f"a sweep runs on one engine; these runs name {' and '.join(map(str, engines))}: "
+            "sweep each engine on its own"
+        )
+    check_engine(cls, engines[0])
+    name = str(cls.name)
     directory = None if out_dir is None else SweepDirectory(out_dir)
     rows: dict[int, SweepRow] = {}
     if directory is not None:
@@ -841,6 +882,7 @@ def sweep(
         time.perf_counter() - wall0,
         resumed=resumed,
         swept=swept,
+        engine=engines[0],
     )
 
 

@@ -637,6 +637,141 @@ def test_bad_physics_requests_are_refused_and_the_simulation_goes_on(tmp_path: P
     ]
 
 
+#: Joins in lockstep and sends MuJoCo requests that must never touch the MjData, then
+#: honest ones through the stand-in the controllers use.
+BAD_MUJOCO = """
+import json, evclock
+from evclock.remote._mujoco_physics import RemoteMjData
+from evclock_sims import MuJoCoWorld
+from evclock_sims.kuka import JOINT_NAMES
+local = MuJoCoWorld()  # the controllers' own copy of the model: the fields' shapes
+local.load_urdf("kuka_iiwa/model.urdf", position_joints=JOINT_NAMES)
+async def main():
+    clock = evclock.clock()
+    link = evclock.remote.participant()
+    data = RemoteMjData(link, local.data)
+    results = []
+    for bad in (
+        b'["qpos2"]', b'[]', b'[1]', json.dumps(["qpos"] * 14).encode(), b'not json',
+        json.dumps(["q" * 100_000]).encode(),
+    ):
+        try:
+            link.call("mujoco", bad)
+            results.append("answered")
+        except evclock.remote.RemoteCallError as exc:
+            results.append(str(exc))
+    for bad in (
+        b'["qpos", [0], [1.0]]',
+        b'["time", [0], [1.0]]',
+        b'["ctrl", [0, 1], [0.5]]',
+        b'["ctrl", [0], [NaN]]',
+        b'["qfrc_applied", [0], [1e308]]',
+        b'["ctrl", [7], [0.5]]',
+        b'["ctrl", [-1], [0.5]]',
+        b'["xfrc_applied", [0, 0], [1, 2]]',
+        b'["ctrl", [true], [1]]',
+        b'["ctrl", [0, 1, 2, 3, 4, 5, 6, 7], [0, 0, 0, 0, 0, 0, 0, 0]]',
+        b'["ctrl", [0], ["x"]]',
+        b'["ctrl", 0, 0.5]',
+        b'["ctrl", [0]]',
+    ):
+        link.publish("mujoco", bad)
+    data.ctrl[1] = float("nan")  # through the stand-in: the simulation refuses it too
+    for local_misuse in (
+        lambda: data.qpos.__setitem__(0, 1.0),
+        lambda: setattr(data, "ctrl", [0.0] * 7),
+        lambda: data.time,
+    ):
+        try:
+            local_misuse()
+            results.append("accepted")
+        except (evclock.InvalidArgumentError, AttributeError) as exc:
+            results.append(f"{type(exc).__name__}: {exc}")
+    data.ctrl[0] = 0.5  # honest ones
+    data.xfrc_applied[2, 3:] = [0.0, 0.0, 0.25]
+    await clock.sleep(0.2)
+    xpos, ctrl = data.read("xpos", "ctrl")
+    results.append([list(xpos.shape), ctrl.tolist(), data.xfrc_applied[2].tolist()])
+    results.append(bool(data.qpos[0] > 0.05))  # it moved: the simulation still runs
+    results.append(list(link.errors))
+    print(json.dumps(results), flush=True)
+evclock.run(main())
+"""
+
+
+def test_bad_mujoco_requests_are_refused_and_the_simulation_goes_on(tmp_path: Path) -> None:
+    from evclock.remote._mujoco_physics import READS, WRITES, MjDataService
+    from evclock_sims import MuJoCoWorld
+    from evclock_sims.kuka import JOINT_NAMES
+
+    url = url_in(tmp_path)
+    world = MuJoCoWorld()
+    world.load_urdf("kuka_iiwa/model.urdf", position_joints=JOINT_NAMES)
+    source = world.time_source()
+    proc = spawn(tmp_path, BAD_MUJOCO, EVCLOCK_CLOCK=f"{url}?name=bad")
+
+    async def main() -> None:
+        async with evclock.remote.serve(url) as server:
+            MjDataService(world.data).install(server)
+            await server.wait_for_participants("bad")
+            await server.wait_until_left()
+
+    evclock.run(main(), source=source)
+    code, out, err = finish(proc)
+    assert code == 0, err
+    *answers, misuse_1, misuse_2, misuse_3, written, moved, errors = json.loads(out)
+    failed = "call to 'mujoco' failed in the simulation: "
+    readable = ", ".join(READS)
+    writable = ", ".join(WRITES)
+    assert answers == [
+        f"{failed}InvalidArgumentError: mujoco.qpos2 is not served to controllers in another "
+        f"process (readable: {readable})",
+        f"{failed}InvalidArgumentError: a mujoco read is a list of field names (readable: "
+        f"{readable})",
+        f"{failed}InvalidArgumentError: a mujoco read names a field by a string, got 1",
+        f"{failed}InvalidArgumentError: a mujoco read names at most 13 fields, got 14",
+        f"{failed}ProtocolError: a mujoco request is not JSON",
+        f"{failed}InvalidArgumentError: mujoco.{'q' * 37}... is not served to controllers in "
+        f"another process (readable: {readable})",  # not an echo of the request
+    ]
+    assert [misuse_1, misuse_2, misuse_3] == [
+        "InvalidArgumentError: mujoco.qpos is read-only to controllers in another process "
+        f"(writable: {writable})",
+        "InvalidArgumentError: MjData.ctrl cannot be replaced from another process: assign "
+        f"into a writable field instead (data.ctrl[:] = values; writable: {writable})",
+        "AttributeError: MjData.time is not available to controllers in another process; they "
+        f"may read {readable} and write {writable}",
+    ]
+    nbody = world.model.nbody
+    assert written == [[nbody, 3], [0.5, 0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0.25]]
+    assert moved is True
+    refused = "frame of kind 'P' refused: the simulation refused data on topic 'mujoco': "
+    assert errors == [
+        refused + "InvalidArgumentError: " + message
+        for message in (
+            f"mujoco.qpos is read-only to controllers in another process (writable: {writable})",
+            f"mujoco.time is not served to controllers in another process (writable: {writable})",
+            "mujoco.ctrl: 2 indices but 1 values",
+            "a mujoco request holds NaN: numbers must be finite",
+            "mujoco.qfrc_applied: values must be finite numbers, got 1e+308",
+            "mujoco.ctrl: index 7 is out of range: the model's ctrl has 7 values (valid: 0 to 6)",
+            "mujoco.ctrl: index -1 is out of range: the model's ctrl has 7 values (valid: 0 to 6)",
+            "mujoco.xfrc_applied: index 0 is given twice",
+            "mujoco.ctrl: an index must be an integer, got True",
+            "mujoco.ctrl: 8 indices for a field of 7 values",
+            "mujoco.ctrl: values must be finite numbers, got 'x'",
+            "mujoco.ctrl: indices and values must be lists",
+        )
+    ] + [
+        refused + "ProtocolError: a mujoco write is not [field, indices, values] JSON",
+        refused + "InvalidArgumentError: a mujoco request holds NaN: numbers must be finite",
+    ]
+    # Nothing refused reached the simulation's data: only the honest writes did.
+    assert world.data.ctrl.tolist() == [0.5, 0, 0, 0, 0, 0, 0]
+    assert not world.data.qfrc_applied.any()
+    assert world.data.xfrc_applied.reshape(-1).nonzero()[0].tolist() == [2 * 6 + 5]
+
+
 #: A lockstep participant that is not the controllers publishes a report saying the
 #: mission succeeded, then leaves; a follower stays joined until the simulation ends.
 ROGUE = """

@@ -81,6 +81,93 @@ def test_split_run_ends_bit_identical_to_the_in_process_run(
     ]
 
 
+#: The command with PyBullet hidden: a MuJoCo split run needs none, on either end.
+CLI_WITHOUT_PYBULLET = [
+    sys.executable,
+    "-c",
+    "import sys\n"
+    "sys.modules['pybullet'] = sys.modules['pybullet_data'] = None\n"
+    "from evclock.tools._cli import main\n"
+    "main()",
+]
+
+
+def evclock_cli_mujoco(*args: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [*CLI_WITHOUT_PYBULLET, *args, "--engine", "mujoco"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+@pytest.mark.parametrize(
+    ("name", "until", "rtf"),
+    [
+        ("kuka", None, "max"),  # the whole mission
+        ("cartpole", "2", "max"),
+        ("kuka", "1.5", "3"),  # paced
+    ],
+)
+def test_a_mujoco_split_run_ends_bit_identical_to_the_in_process_run(
+    tmp_path: Path, name: str, until: str | None, rtf: str
+) -> None:
+    limit = [] if until is None else ["--until", until]
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    server = evclock_cli_mujoco(
+        "run", name, *limit, "--rtf", rtf, "--quiet", "--seed", "3",
+        "--serve", address, "--remote-controllers", "--json", str(tmp_path / "sim.json"),
+    )  # fmt: skip
+    controllers = evclock_cli_mujoco(
+        "control", name, *limit, "--seed", "3", "--clock", address, "--quiet",
+        "--json", str(tmp_path / "controllers.json"),
+    )  # fmt: skip
+    ctrl_code, ctrl_output = wait(controllers)
+    sim_code, sim_output = wait(server)
+    expected_code = 0 if until is None else 3  # cut short by --until: no verdict
+    assert (sim_code, ctrl_code) == (expected_code, expected_code), sim_output + ctrl_output
+
+    in_process = run_scenario(
+        name, until=None if until is None else float(until), seed=3, rtf=None, engine="mujoco"
+    ).to_json()
+    served = json.loads((tmp_path / "sim.json").read_text())
+    joined = json.loads((tmp_path / "controllers.json").read_text())
+    assert served["engine"] == joined["engine"] == in_process["engine"] == "mujoco"
+    assert served["final_state"] == in_process["final_state"]  # bit for bit
+    assert joined["final_state"] == in_process["final_state"]
+    assert served["sim_time_s"] == joined["sim_time_s"] == in_process["sim_time_s"]
+    assert served["summary"] == joined["summary"] == in_process["summary"]
+    assert served["verdict"] == in_process["verdict"]
+    assert [loop["stats"]["ticks"] for loop in served["loops"]] == [
+        loop["stats"]["ticks"] for loop in in_process["loops"]
+    ]
+
+
+@pytest.mark.pybullet
+@pytest.mark.parametrize(
+    ("served", "joining", "says"),
+    [
+        (["--engine", "mujoco"], [], "runs 'kuka' on mujoco, but these controllers are for "
+         "pybullet; use the same engine on both (--engine mujoco)"),
+        ([], ["--engine", "mujoco"], "runs 'kuka' on pybullet, but these controllers are for "
+         "mujoco; use the same engine on both (--engine pybullet)"),
+    ],
+)  # fmt: skip
+def test_controllers_for_another_engine_are_refused(
+    tmp_path: Path, served: list[str], joining: list[str], says: str
+) -> None:
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    server = evclock_cli("run", "kuka", *served, "--quiet", "--serve", address,
+                         "--remote-controllers")  # fmt: skip
+    wrong = evclock_cli("control", "kuka", *joining, "--clock", address)
+    code, output = wait(wrong)
+    server.kill()
+    wait(server)
+    assert code == 2
+    assert f"error: the simulation at {address} {says}" in " ".join(output.split())
+
+
 @pytest.mark.pybullet
 def test_controllers_for_another_scenario_or_seed_are_refused(tmp_path: Path) -> None:
     address = f"unix://{tmp_path / 'sim.sock'}"

@@ -136,6 +136,8 @@ BAD_SWEEPS = [
     (["--best", "median:x"], "error: --best takes METRIC, min:METRIC or max:METRIC"),
     (["--plot-metric", "x"], "error: --plot-metric names what --plot draws: add --plot"),
     (["--workers", "two"], "error: Invalid value for '--workers'"),
+    (["--engine", "mujoco"], "error: scenario 'shuttle' runs on pybullet only, not on mujoco"),
+    (["--engine", "gazebo"], "error: Invalid value for '--engine'"),
 ]
 
 
@@ -197,6 +199,51 @@ def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
     rgb = np.array([int(HISTOGRAM_COLOR[i : i + 2], 16) / 255 for i in (1, 3, 5)])
     bars = (np.abs(image[:, :, :3] - rgb).max(axis=2) < 0.02).sum()
     assert bars > 5000
+
+
+def test_a_mujoco_sweep_runs_each_seed_as_evclock_run_engine_mujoco(tmp_path: Path) -> None:
+    out = tmp_path / "sweep.json"
+    command = [
+        sys.executable, "-m", "evclock", "sweep", "kuka", "--engine", "mujoco", "--seeds", "0:2",
+        "--until", "0.5", "--workers", "2", "--json", str(out), "--out", str(tmp_path / "out"),
+        "--quiet",
+    ]  # fmt: skip
+    proc = subprocess.run(
+        command, capture_output=True, text=True, timeout=TIMEOUT, check=False,
+        env={**os.environ, "COLUMNS": "200"},
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr  # cut short by --until: no verdict
+    text = " ".join(proc.stdout.split())
+    assert "kuka on mujoco: 2/2 runs (2 cut short)" in text
+    assert "reproduce: evclock run kuka --seed 1 --until 0.5 --engine mujoco" in text
+    data = json.loads(out.read_text())
+    assert data["engine"] == data["summary"]["engine"] == "mujoco"
+    assert [row["seed"] for row in data["rows"]] == [0, 1]
+    for row in data["rows"]:
+        assert row["report"]["engine"] == "mujoco"
+        single = evclock.tools.run_scenario("kuka", seed=row["seed"], until=0.5, engine="mujoco")
+        assert row["report"]["final_state"] == single.final_state  # bit for bit
+        assert row["report"]["summary"] == single.to_json()["summary"]
+    # The same command resumes from --out: every run is there already, on this engine.
+    again = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT, check=False)
+    assert "kuka on mujoco: 2/2 runs (2 cut short), 2 from the earlier sweep in --out" in " ".join(
+        again.stdout.split()
+    ), again.stdout + again.stderr
+
+
+def test_an_out_directory_holding_another_engine_is_refused(tmp_path: Path) -> None:
+    from evclock.tools._sweep import RUNS_FILE, RunSpec, SweepDirectory
+
+    directory = SweepDirectory(tmp_path)
+    old = SweepRow(RunSpec("kuka", 0, {}, 0.5), "cut short").to_json()
+    # A row written before sweeps named their engine: PyBullet's.
+    (tmp_path / RUNS_FILE).write_text(json.dumps({"scenario": "kuka", "until": 0.5, **old}) + "\n")
+    assert list(directory.finished([RunSpec("kuka", 0, {}, 0.5)])) == [0]
+    with pytest.raises(evclock.InvalidArgumentError) as info:
+        directory.finished([RunSpec("kuka", 0, {}, 0.5, "mujoco")])
+    assert str(info.value) == (
+        f"--out {str(tmp_path)!r} holds a sweep on pybullet, not on mujoco; give another directory"
+    )
 
 
 def _rows_by_seed(path: Path) -> dict[int, dict[str, object]]:
