@@ -14,6 +14,9 @@ Floors (the same exchange with no evclock), measured in forked processes:
 
 * **ping-pong**: a blocking round trip between two Python processes over a Unix
   socketpair: the floor of any lockstep round between processes.
+* **eventfd ping-pong**: the same blocking round trip over a pair of eventfds (how a
+  shared-memory ring wakes its peer) instead of a socket: what a faster same-host transport
+  could save per round at most.
 * **fan-out ping-pong** of width N (each width in ``--participants`` above 1): one blocking
   process sends a GRANT to each of N processes over N socketpairs, then receives each
   one's DONE: the floor of a lockstep round with N participants.
@@ -355,6 +358,34 @@ def floor_rate(
             sock.close()
     mean = sum(participant_cpu) / len(participant_cpu)
     return rounds / wall, cpu_s / rounds * 1e6, mean / rounds * 1e6
+
+
+def eventfd_rate(rounds: int) -> tuple[float, float, float]:
+    """Round trips per wall second of the blocking ping-pong over a pair of eventfds (how a
+    shared-memory ring would wake its peer) instead of a socketpair: what a faster same-host
+    transport could save per round at most. CPU figures are not measured (0.0)."""
+    grant, done = os.eventfd(0), os.eventfd(0)
+    pid = os.fork()
+    if pid == 0:
+        status = 1
+        try:
+            for _ in range(rounds):
+                os.eventfd_read(grant)
+                os.eventfd_write(done, 1)
+            status = 0
+        finally:
+            os._exit(status)
+    wall0 = time.perf_counter()
+    for _ in range(rounds):
+        os.eventfd_write(grant, 1)
+        os.eventfd_read(done)
+    wall = time.perf_counter() - wall0
+    _, status = os.waitpid(pid, 0)
+    os.close(grant)
+    os.close(done)
+    if status:
+        raise SystemExit(f"the eventfd ping-pong's participant failed (status {status})")
+    return rounds / wall, 0.0, 0.0
 
 
 def run_side(side: str, fd: int) -> int:
@@ -755,6 +786,7 @@ def main() -> None:
         floor_rounds = args.rounds * 4
         for _ in range(args.repeat):
             keep_best(results, "ping_pong_rounds_per_s", floor_rate("ping-pong", 1, floor_rounds))
+            keep_best(results, "eventfd_ping_pong_rounds_per_s", eventfd_rate(floor_rounds))
             for width in widths:
                 keep_best(
                     results,
@@ -818,6 +850,12 @@ def main() -> None:
         f"interleaved; a round: a 9-byte GRANT out, a 17-byte DONE back"
     )
     print(f"ping-pong (2 processes, blocking): {base:,.0f} round trips/s")
+    eventfd = results["eventfd_ping_pong_rounds_per_s"]
+    print(
+        f"ping-pong over eventfds instead of a socket (a shared-memory ring's wake-up): "
+        f"{eventfd:,.0f} round trips/s ({1e6 / eventfd:.1f} us per round trip; over the socket "
+        f"{1e6 / base:.1f} us)"
+    )
     if cpu is not None:
         print(
             f"ping-pong, every process on CPU {cpu}: "
