@@ -363,7 +363,13 @@ def test_a_finished_mission_starts_the_next_episode_without_a_time_jump(
     make_client: Callable[..., httpx.Client],
 ) -> None:
     client = make_client(paused=False, rtf=None)
-    current = wait_for(lambda s: s["episode"]["number"] >= 2, client, "the second episode")
+    # Running, not in the gap after it ended (the ended episode is still the current one
+    # then, and already among the finished).
+    current = wait_for(
+        lambda s: s["episode"]["number"] >= 2 and s["episode"]["outcome"] == "running",
+        client,
+        "the second episode",
+    )
     first = current["finished_episodes"][-1]
     assert first["number"] == 1
     assert first["seed"] == 0
