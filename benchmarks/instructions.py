@@ -404,15 +404,20 @@ def print_table(title: str, rows: list[tuple[str, Measured]], floor: str, simpy:
 
 @dataclass
 class Target:
+    """A target of the project, met or not by a figure of this run (a ratio here)."""
+
     what: str
     value: float
     limit: float
     at_least: bool = False
 
+    @property
+    def met(self) -> bool:
+        return self.value >= self.limit if self.at_least else self.value <= self.limit
+
     def line(self) -> str:
-        met = self.value >= self.limit if self.at_least else self.value <= self.limit
         sign = ">=" if self.at_least else "<="
-        verdict = "met" if met else "NOT MET"
+        verdict = "met" if self.met else "NOT MET"
         return f"  {self.what:<70}{self.value:>7.3f}x  {sign} {self.limit:.2f}x  {verdict}"
 
 

@@ -104,6 +104,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import instructions
 from instructions import _Marks, build_marks
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -681,18 +682,11 @@ def kuka_split(folder: Path, root: Path, hz: float) -> KukaRun:
 
 
 @dataclass
-class Target:
-    """A target of the project, met or not by a figure of this run."""
+class Target(instructions.Target):
+    """A target of the project, met or not by a figure of this run: a ratio, a count or a
+    yes/no."""
 
-    what: str
-    value: float
-    limit: float
-    at_least: bool = False
     unit: str = "x"  # "x" (a ratio), "instr" (a count) or "yes" (1.0: yes, 0.0: no)
-
-    @property
-    def met(self) -> bool:
-        return self.value >= self.limit if self.at_least else self.value <= self.limit
 
     def line(self) -> str:
         sign = ">=" if self.at_least else "<="

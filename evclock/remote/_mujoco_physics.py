@@ -35,6 +35,7 @@ from typing import Any, Final
 import numpy as np
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
+from evclock.remote._checks import is_finite_number, is_int
 
 SERVICE: Final = "mujoco"  # reads: request/reply
 TOPIC: Final = "mujoco"  # writes: ordered, applied at the end of the round
@@ -100,19 +101,6 @@ def _unserved(name: str, kind: str) -> InvalidArgumentError:
     return InvalidArgumentError(f"mujoco.{shown} {reason} ({label}: {', '.join(allowed)})")
 
 
-def _is_int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _is_number(value: object) -> bool:
-    return (
-        isinstance(value, int | float)
-        and not isinstance(value, bool)
-        and math.isfinite(value)
-        and abs(value) < 1e300
-    )
-
-
 class MjDataService:
     """Serves a ``mujoco.MjData`` to remote controllers (install it on a ClockServer).
 
@@ -174,7 +162,7 @@ class MjDataService:
             raise _bad(field, f"{len(indices)} indices but {len(values)} values")
         seen: set[int] = set()
         for index in indices:
-            if not _is_int(index):
+            if not is_int(index):
                 raise _bad(field, f"an index must be an integer, got {_shown(index)}")
             if not 0 <= index < size:
                 raise _bad(
@@ -186,7 +174,7 @@ class MjDataService:
                 raise _bad(field, f"index {index} is given twice")
             seen.add(index)
         for value in values:
-            if not _is_number(value):
+            if not is_finite_number(value):
                 raise _bad(field, f"values must be finite numbers, got {_shown(value)}")
         np.put(target, indices, values)  # in place, flat (row-major) indices
 

@@ -23,10 +23,10 @@ from __future__ import annotations
 
 import functools
 import json
-import math
 from typing import Any, Final
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
+from evclock.remote._checks import all_finite_numbers, is_finite_number, is_int
 
 SERVICE: Final = "pybullet"  # reads: request/reply
 TOPIC: Final = "pybullet"  # commands: ordered, applied at the end of the round
@@ -215,37 +215,6 @@ def _bad(name: str, param: str, reason: str) -> InvalidArgumentError:
     return InvalidArgumentError(f"pybullet.{name}: {param} {reason}")
 
 
-def _int(value: object) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
-def _number(value: object) -> bool:
-    return (
-        isinstance(value, int | float)
-        and not isinstance(value, bool)
-        and abs(value) < 1e300  # first: an integer too large for a float fails here
-        and math.isfinite(value)
-    )
-
-
-_NUMBER_TYPES: Final = frozenset({int, float})
-
-
-def _all_finite(items: list[Any]) -> bool:
-    """Whether every item passes :func:`_number`, in a few passes of C (a command's
-    vectors are checked on every round); False sends the caller to the item-by-item check,
-    which names the first bad one."""
-    if not items:
-        return True
-    if not _NUMBER_TYPES.issuperset(map(type, items)):
-        return False  # a bool, a string, a nested list, a subclass...
-    try:
-        # NaN or infinity anywhere makes the sum so; max() alone could skip a NaN.
-        return math.isfinite(sum(map(abs, items))) and max(map(abs, items)) < 1e300
-    except OverflowError:
-        return False  # an integer too large for a float
-
-
 class _Checker:
     """Checks one request's arguments against the engine's current bodies."""
 
@@ -277,14 +246,14 @@ class _Checker:
 
     def _floats(self, param: str, value: object, size: int | None = None) -> None:
         items = self._list(param, value, size)
-        if _all_finite(items):
+        if all_finite_numbers(items):
             return
         for item in items:
-            if not _number(item):
+            if not is_finite_number(item):
                 raise _bad(self._name, param, f"must hold finite numbers, got {item!r}")
 
     def _index(self, param: str, value: object, low: int, count: int, what: str) -> None:
-        if not _int(value):
+        if not is_int(value):
             raise _bad(self._name, param, f"must be an integer {what}, got {value!r}")
         assert isinstance(value, int)
         if not low <= value < count:
@@ -302,7 +271,7 @@ class _Checker:
             for i in range(p.getNumBodies(physicsClientId=self._client))
         }
         for param, value in values.items():
-            if kinds[param] == "body" and (not _int(value) or value not in bodies):
+            if kinds[param] == "body" and (not is_int(value) or value not in bodies):
                 raise _bad(self._name, param, f"{value!r} is not the id of a body")
         main = next((v for k, v in values.items() if kinds[k] == "body"), None)
         for param, value in values.items():
@@ -345,19 +314,19 @@ class _Checker:
                 for item in self._list(param, value):
                     self._floats(param, item, 3)
             elif kind == "float":
-                if not _number(value):
+                if not is_finite_number(value):
                     raise _bad(self._name, param, f"must be a finite number, got {value!r}")
             elif kind in ("int", "flag"):
-                if not _int(value) and not isinstance(value, bool):
+                if not is_int(value) and not isinstance(value, bool):
                     raise _bad(self._name, param, f"must be an integer, got {value!r}")
                 if not -(2**31) <= int(value) < 2**31:
                     raise _bad(self._name, param, f"{value} is out of range")
             elif kind == "mode":
                 modes = (p.POSITION_CONTROL, p.VELOCITY_CONTROL, p.TORQUE_CONTROL, p.PD_CONTROL)
-                if not _int(value) or value not in modes:
+                if not is_int(value) or value not in modes:
                     raise _bad(self._name, param, f"{value!r} is not a control mode")
             elif kind == "frame" and (
-                not _int(value) or value not in (p.WORLD_FRAME, p.LINK_FRAME)
+                not is_int(value) or value not in (p.WORLD_FRAME, p.LINK_FRAME)
             ):
                 raise _bad(self._name, param, f"{value!r} is not WORLD_FRAME or LINK_FRAME")
 

@@ -1,4 +1,4 @@
-"""The physics service's vector check in C agrees with its item-by-item check."""
+"""The physics services' vector check in C agrees with their item-by-item check."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 from hypothesis import given
 from hypothesis import strategies as st
 
-from evclock.remote._physics import _all_finite, _number
+from evclock.remote._checks import all_finite_numbers, is_finite_number
 
 ITEMS = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -22,13 +22,13 @@ ITEMS = st.one_of(
 
 @given(st.lists(ITEMS, max_size=12))
 def test_the_vector_check_accepts_exactly_what_the_item_check_accepts(items: list[object]) -> None:
-    assert _all_finite(items) == all(_number(item) for item in items)
+    assert all_finite_numbers(items) == all(is_finite_number(item) for item in items)
 
 
 def test_the_vector_check_refuses_each_kind_of_bad_item() -> None:
     good = [0.0, 1, -2.5]
     for bad in (math.nan, math.inf, -math.inf, True, 1e300, 10**400, "1", None, [1.0]):
-        assert not _all_finite([*good, bad]), bad
-        assert not _all_finite([bad, *good]), bad
-    assert _all_finite(good)
-    assert _all_finite([])
+        assert not all_finite_numbers([*good, bad]), bad
+        assert not all_finite_numbers([bad, *good]), bad
+    assert all_finite_numbers(good)
+    assert all_finite_numbers([])

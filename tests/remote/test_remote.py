@@ -165,6 +165,23 @@ def test_simulation_does_not_advance_while_a_participant_works(tmp_path: Path) -
     assert seen == [(10_000_000, 10_000_000), (20_000_000, 20_000_000), (30_000_000, 30_000_000)]
 
 
+class KeepaliveCount:
+    """Counts a clock server's keepalives (every 0.2 s of wall time, one more callback
+    each), which the poll-counting tests allow for."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def watch(self, server: evclock.remote.ClockServer) -> None:
+        keepalive = server._keepalive
+
+        def counting_keepalive() -> None:
+            self.count += 1
+            keepalive()
+
+        server._keepalive = counting_keepalive  # type: ignore[method-assign]
+
+
 def test_a_lockstep_round_costs_the_server_no_zero_timeout_poll(tmp_path: Path) -> None:
     """Per round the server waits for the DONE (a blocking poll) and nothing more: its
     connections are accounted for (it holds sim time while a participant works), so no
@@ -175,7 +192,8 @@ def test_a_lockstep_round_costs_the_server_no_zero_timeout_poll(tmp_path: Path) 
     url = address(tmp_path)
     rounds = 200
     proc = spawn(tmp_path, TICKER, str(rounds), EVCLOCK_CLOCK=f"{url}?name=ticker")
-    zero_polls = keepalives = 0
+    zero_polls = 0
+    keepalives = KeepaliveCount()
 
     async def main() -> None:
         loop = asyncio.get_running_loop()
@@ -189,14 +207,7 @@ def test_a_lockstep_round_costs_the_server_no_zero_timeout_poll(tmp_path: Path) 
                 return select(timeout)
 
             loop._selector.select = counting_select  # type: ignore[attr-defined]
-            keepalive = server._keepalive
-
-            def counting_keepalive() -> None:
-                nonlocal keepalives
-                keepalives += 1
-                keepalive()
-
-            server._keepalive = counting_keepalive  # type: ignore[method-assign]
+            keepalives.watch(server)
             await server.wait_until_left()
 
     evclock.run(main())
@@ -205,7 +216,7 @@ def test_a_lockstep_round_costs_the_server_no_zero_timeout_poll(tmp_path: Path) 
     assert len(json.loads(out)) == rounds + 1
     # A few around the join and the leave, at most two per keepalive (one callback between
     # two rounds); none per round (one per round before the round path, three before that).
-    assert zero_polls <= 10 + 2 * keepalives, (zero_polls, keepalives)
+    assert zero_polls <= 10 + 2 * keepalives.count, (zero_polls, keepalives.count)
 
 
 COUNTING_TICKER = """
@@ -240,18 +251,11 @@ def test_a_lockstep_participant_waits_for_its_grant_inside_the_advance(tmp_path:
     url = address(tmp_path)
     rounds = 300
     proc = spawn(tmp_path, COUNTING_TICKER, str(rounds), EVCLOCK_CLOCK=f"{url}?name=ticker")
-    keepalives = 0
+    keepalives = KeepaliveCount()
 
     async def main() -> None:
         async with evclock.remote.serve(url) as server:
-            keepalive = server._keepalive
-
-            def counting_keepalive() -> None:
-                nonlocal keepalives
-                keepalives += 1
-                keepalive()
-
-            server._keepalive = counting_keepalive  # type: ignore[method-assign]
+            keepalives.watch(server)
             await server.wait_for_participants("ticker")
             await server.wait_until_left()
 
@@ -260,7 +264,7 @@ def test_a_lockstep_participant_waits_for_its_grant_inside_the_advance(tmp_path:
     assert code == 0, err
     seen = json.loads(out)
     assert seen["now"] == (rounds + 1) * 1_000_000
-    assert seen["selects"] <= 5 + 2 * keepalives, (seen, keepalives)
+    assert seen["selects"] <= 5 + 2 * keepalives.count, (seen, keepalives.count)
 
 
 WAITS_FOR_A_GRANT = """

@@ -38,49 +38,6 @@ def wait(proc: subprocess.Popen[str]) -> tuple[int, str]:
     return proc.returncode, out + err
 
 
-@pytest.mark.pybullet
-@pytest.mark.parametrize(
-    ("name", "until", "rtf"),
-    [
-        ("kuka", None, "max"),  # the whole mission
-        ("cartpole", "5", "max"),
-        ("husky", "2", "max"),  # ray casts and contact queries across processes too
-        ("kuka", "1.5", "3"),  # paced
-        ("cartpole", "1.5", "3"),
-    ],
-)
-def test_split_run_ends_bit_identical_to_the_in_process_run(
-    tmp_path: Path, name: str, until: str | None, rtf: str
-) -> None:
-    limit = [] if until is None else ["--until", until]
-    address = f"unix://{tmp_path / 'sim.sock'}"
-    server = evclock_cli(
-        "run", name, *limit, "--rtf", rtf, "--quiet", "--seed", "3",
-        "--serve", address, "--remote-controllers", "--json", str(tmp_path / "sim.json"),
-    )  # fmt: skip
-    controllers = evclock_cli(
-        "control", name, *limit, "--seed", "3", "--clock", address, "--quiet",
-        "--json", str(tmp_path / "controllers.json"),
-    )  # fmt: skip
-    ctrl_code, ctrl_output = wait(controllers)
-    sim_code, sim_output = wait(server)
-    expected_code = 0 if until is None else 3  # cut short by --until: no verdict
-    assert (sim_code, ctrl_code) == (expected_code, expected_code), sim_output + ctrl_output
-
-    in_process = run_scenario(
-        name, until=None if until is None else float(until), seed=3, rtf=None
-    ).to_json()
-    served = json.loads((tmp_path / "sim.json").read_text())
-    joined = json.loads((tmp_path / "controllers.json").read_text())
-    assert served["final_state"] == in_process["final_state"]  # bit for bit
-    assert joined["final_state"] == in_process["final_state"]
-    assert served["sim_time_s"] == joined["sim_time_s"] == in_process["sim_time_s"]
-    assert served["summary"] == joined["summary"] == in_process["summary"]
-    assert [loop["stats"]["ticks"] for loop in served["loops"]] == [
-        loop["stats"]["ticks"] for loop in in_process["loops"]
-    ]
-
-
 #: The command with PyBullet hidden: a MuJoCo split run needs none, on either end.
 CLI_WITHOUT_PYBULLET = [
     sys.executable,
@@ -102,24 +59,34 @@ def evclock_cli_mujoco(*args: str) -> subprocess.Popen[str]:
     )
 
 
+PYBULLET = pytest.mark.pybullet
+
+
 @pytest.mark.parametrize(
-    ("name", "until", "rtf"),
+    ("engine", "name", "until", "rtf"),
     [
-        ("kuka", None, "max"),  # the whole mission
-        ("cartpole", "2", "max"),
-        ("kuka", "1.5", "3"),  # paced
+        pytest.param("pybullet", "kuka", None, "max", marks=PYBULLET),  # the whole mission
+        pytest.param("pybullet", "cartpole", "5", "max", marks=PYBULLET),
+        # ray casts and contact queries across processes too
+        pytest.param("pybullet", "husky", "2", "max", marks=PYBULLET),
+        pytest.param("pybullet", "kuka", "1.5", "3", marks=PYBULLET),  # paced
+        pytest.param("pybullet", "cartpole", "1.5", "3", marks=PYBULLET),
+        ("mujoco", "kuka", None, "max"),  # without PyBullet, on either end
+        ("mujoco", "cartpole", "2", "max"),
+        ("mujoco", "kuka", "1.5", "3"),
     ],
 )
-def test_a_mujoco_split_run_ends_bit_identical_to_the_in_process_run(
-    tmp_path: Path, name: str, until: str | None, rtf: str
+def test_split_run_ends_bit_identical_to_the_in_process_run(
+    tmp_path: Path, engine: str, name: str, until: str | None, rtf: str
 ) -> None:
+    cli = evclock_cli_mujoco if engine == "mujoco" else evclock_cli
     limit = [] if until is None else ["--until", until]
     address = f"unix://{tmp_path / 'sim.sock'}"
-    server = evclock_cli_mujoco(
+    server = cli(
         "run", name, *limit, "--rtf", rtf, "--quiet", "--seed", "3",
         "--serve", address, "--remote-controllers", "--json", str(tmp_path / "sim.json"),
     )  # fmt: skip
-    controllers = evclock_cli_mujoco(
+    controllers = cli(
         "control", name, *limit, "--seed", "3", "--clock", address, "--quiet",
         "--json", str(tmp_path / "controllers.json"),
     )  # fmt: skip
@@ -129,11 +96,11 @@ def test_a_mujoco_split_run_ends_bit_identical_to_the_in_process_run(
     assert (sim_code, ctrl_code) == (expected_code, expected_code), sim_output + ctrl_output
 
     in_process = run_scenario(
-        name, until=None if until is None else float(until), seed=3, rtf=None, engine="mujoco"
+        name, until=None if until is None else float(until), seed=3, rtf=None, engine=engine
     ).to_json()
     served = json.loads((tmp_path / "sim.json").read_text())
     joined = json.loads((tmp_path / "controllers.json").read_text())
-    assert served["engine"] == joined["engine"] == in_process["engine"] == "mujoco"
+    assert served["engine"] == joined["engine"] == in_process["engine"] == engine
     assert served["final_state"] == in_process["final_state"]  # bit for bit
     assert joined["final_state"] == in_process["final_state"]
     assert served["sim_time_s"] == joined["sim_time_s"] == in_process["sim_time_s"]
