@@ -339,6 +339,25 @@ def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     assert rows[0]["report"]["final_state"] == report.final_state  # type: ignore[index]
 
 
+@needs_ray
+def test_ray_backend_runs_mujoco_runs_for_real(tmp_path: Path) -> None:
+    out = tmp_path / "ray.json"
+    proc = subprocess.run(
+        [sys.executable, "-m", "evclock", "sweep", "kuka", "--engine", "mujoco", "--seeds", "0:2",
+         "--until", "0.5", "--backend", "ray", "--workers", "2", "--json", str(out), "--quiet"],
+        capture_output=True, text=True, timeout=TIMEOUT, check=False,
+        env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"},
+    )  # fmt: skip
+    assert proc.returncode == 1, proc.stdout + proc.stderr  # cut short by --until: no verdict
+    data = json.loads(out.read_text())
+    assert data["engine"] == "mujoco"
+    assert sorted(_rows_by_seed(out)) == [0, 1]
+    for seed, row in sorted(_rows_by_seed(out).items()):
+        single = evclock.tools.run_scenario("kuka", seed=seed, until=0.5, engine="mujoco")
+        assert row["report"]["engine"] == "mujoco"  # type: ignore[index]
+        assert row["report"]["final_state"] == single.final_state  # type: ignore[index]
+
+
 @pytest.mark.pybullet
 def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
