@@ -95,8 +95,6 @@ def serve_scenario(
         raise InvalidArgumentError("--serve serves sim time: drop --wall")
     cls = scenario_class(name, {})
     check_engine(cls, engine)
-    if engine != "pybullet" and record is not None:
-        raise InvalidArgumentError(f"--record runs on PyBullet only: drop --engine {engine}")
     limit = _limit(cls, until)
     opened, scenario = open_world(cls, seed, engine=engine, gui=gui)
     source: Any = opened  # PyBullet's or MuJoCo's: a stepping source either way

@@ -13,7 +13,8 @@ MCAP file, to the live WebSocket and back through ``evclock trace``:
 - ``foxglove.Log``: the controllers' :mod:`logging` records.
 
 :class:`World` reads all of this from a PyBullet client by name (bodies, links and joints as
-the URDF names them); :class:`LiveView` serves the channels with the ``foxglove-sdk``
+the URDF names them; :class:`~evclock.tools._world_mujoco.MuJoCoWorldReader` from a MuJoCo
+model, in the same messages); :class:`LiveView` serves the channels with the ``foxglove-sdk``
 WebSocket server, broadcasting sim time so Foxglove's timeline follows the simulation.
 """
 

@@ -22,9 +22,12 @@ documents for MCAP), stamped with the sim time in integer nanoseconds (``log_tim
 The file's ``evclock.format`` metadata names its format version (:data:`FORMAT_VERSION`;
 recordings without it are version 1, whose state is an unnamed array).
 
-The recorder observes the run from a PyBullet step hook (run before each step, when all the
-work at the current time is done), so it adds no task or timer to the program: a recorded run
-has the same trajectory as an unrecorded one.
+The recorder observes the run from a step hook of the physics engine's time source (run before
+each step, when all the work at the current time is done), so it adds no task or timer to the
+program: a recorded run has the same trajectory as an unrecorded one. It reads the world by
+name on either engine: PyBullet's bodies, links and joints (:class:`~evclock.tools._foxglove.
+World`) or a MuJoCo model's trees, bodies and joints
+(:class:`~evclock.tools._world_mujoco.MuJoCoWorldReader`), in the same messages.
 """
 
 from __future__ import annotations
@@ -45,8 +48,9 @@ from evclock._errors import InvalidArgumentError, InvalidTypeError, MissingExtra
 if TYPE_CHECKING:
     from evclock.kernel._clock import Clock
     from evclock.kernel._jumps import TimeJump
-    from evclock.sources import PyBulletTimeSource
+    from evclock.sources._stepping import SteppingTimeSource
     from evclock.tools._foxglove import LiveView, World
+    from evclock.tools._world_mujoco import MuJoCoWorldReader
 
 PROFILE = "evclock"
 """The MCAP profile of evclock recordings."""
@@ -288,7 +292,7 @@ class Recorder:
         self._sequence = 0
         self._clock: Clock | None = None
         self._state: Callable[[], list[float]] | None = None
-        self._world: World | None = None
+        self._world: World | MuJoCoWorldReader | None = None
         self._scene_sent = False
         self._log_handler: logging.Handler | None = None
         self._seen: dict[str, tuple[int, int]] = {}  # loop name -> (ticks, missed) recorded
@@ -363,11 +367,11 @@ class Recorder:
 
     def attach(
         self,
-        source: PyBulletTimeSource | None,
+        source: SteppingTimeSource[Any] | None,
         clk: Clock,
         state: Callable[[], list[float]],
         *,
-        client: int | None = None,
+        world: Any = None,
     ) -> contextvars.Token[Recorder | None]:
         """Start observing: a step hook on ``source``, a jump handler on ``clk``, a
         :mod:`logging` handler for the controllers' logs.
@@ -376,20 +380,21 @@ class Recorder:
         Without a ``source`` (wall time), the caller calls :meth:`observe` after each
         physics step.
 
-        :param source: the PyBullet time source stepping the run, or None.
+        :param source: the time source stepping the run (PyBullet's or MuJoCo's), or None.
         :param clk: the run's clock (its time stamps every message).
         :param state: the scenario's state vector (recorded when the world cannot be read
             by name).
-        :param client: the PyBullet client (default: the source's).
+        :param world: the world to read: a PyBullet client id, or anything with a MuJoCo
+            ``model`` and ``data`` (default: the source's client, or its model and data).
         :returns: the token of :func:`record`'s target.
         """
         from evclock.tools._foxglove import logging_handler
 
         self._clock = clk
         self._state = state
-        if client is None and source is not None:
-            client = getattr(source, "client", None)  # a PyBullet source's (MuJoCo has none)
-        self._world = self._read_world(client)
+        if world is None and source is not None:
+            world = getattr(source, "client", source)  # PyBullet's client, or MuJoCo's source
+        self._world = self._read_world(world)
         self._next_sample_ns = clk.now_ns()
         self._last_sample = (clk.now_ns(), time.perf_counter())
         if source is not None:
@@ -404,14 +409,22 @@ class Recorder:
         return _ACTIVE.set(self)
 
     @staticmethod
-    def _read_world(client: int | None) -> World | None:
-        if client is None:
-            return None
-        from evclock._extras import import_extra
-        from evclock.tools._foxglove import World
+    def _read_world(world: Any) -> World | MuJoCoWorldReader | None:
+        """The reader of ``world``: a PyBullet client id, or an object with a MuJoCo
+        ``model`` and ``data`` (a MuJoCo source, an ``evclock_sims.MuJoCoWorld``); None when
+        it is neither (then the scenario's state vector is recorded)."""
+        if isinstance(world, int) and not isinstance(world, bool):
+            from evclock._extras import import_extra
+            from evclock.tools._foxglove import World
 
-        pybullet = import_extra("pybullet", "pybullet", needed_by="recording a run")
-        return World(client, pybullet)
+            pybullet = import_extra("pybullet", "pybullet", needed_by="recording a run")
+            return World(world, pybullet)
+        model, data = getattr(world, "model", None), getattr(world, "data", None)
+        if model is not None and data is not None:
+            from evclock.tools._world_mujoco import MuJoCoWorldReader
+
+            return MuJoCoWorldReader(model, data)
+        return None
 
     def _logged(self, log: logging.LogRecord) -> None:
         from evclock.tools._foxglove import LOG_SCHEMA, log_message

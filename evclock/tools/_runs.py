@@ -22,7 +22,7 @@ import sysconfig
 import tempfile
 import time
 import traceback
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -299,19 +299,19 @@ def run_scenario(
 ) -> RunReport:
     """Run ``scenario`` (a name, ``module:Class``, a file, or a class) once and report.
 
-    On sim time unless ``wall`` (see the module docstring); ``record`` writes an MCAP
-    recording (sim time only); ``progress`` (a rich Progress, refreshed by the run itself)
-    shows sim time and the achieved real-time factor; ``ros2_clock`` publishes sim time as
-    ROS 2 ``/clock`` meanwhile (see :mod:`evclock.ros2`).
+    On sim time unless ``wall`` (see the module docstring), on either engine; ``record``
+    writes an MCAP recording (see :mod:`evclock.tools._record`); ``progress`` (a rich
+    Progress, refreshed by the run itself) shows sim time and the achieved real-time factor;
+    ``ros2_clock`` publishes sim time as ROS 2 ``/clock`` meanwhile (see :mod:`evclock.ros2`).
 
     :param scenario: a registered name, ``module:Class``, a file, or a scenario class.
     :param until: sim seconds to run at most (default: the scenario's ``default_until``).
     :param rtf: real-time factor on sim time (None: as fast as possible).
     :param seed: the seed the scenario is set up with.
     :param params: scenario parameters to set (see :func:`load_scenario`'s classes).
-    :param gui: show the physics engine's GUI (needs a display).
+    :param gui: show PyBullet's GUI (needs a display; MuJoCo runs have none).
     :param wall: run on wall time instead of sim time.
-    :param record: an MCAP file to record the run to (sim time only).
+    :param record: an MCAP file to record the run to.
     :param progress: a rich Progress to show the run on.
     :param ros2_clock: publish sim time as ROS 2 ``/clock`` with these options.
     :param engine: the physics engine, ``"pybullet"`` (default) or ``"mujoco"`` (see
@@ -319,7 +319,7 @@ def run_scenario(
     :returns: the :class:`RunReport` of the run.
     :raises InvalidTypeError: ``seed`` is not an int, or a parameter has the wrong type.
     :raises InvalidArgumentError: a non-positive ``until``, an unknown scenario or
-        parameter, ``gui`` without a display, or ``record``/``ros2_clock`` with ``wall``.
+        parameter, ``gui`` without a display or on MuJoCo, or ``ros2_clock`` with ``wall``.
     :raises ScenarioError: the scenario cannot be imported.
     :raises MissingExtraError: ``record`` or ``ros2_clock`` without their extra installed.
 
@@ -333,9 +333,9 @@ def run_scenario(
     params = dict(params or {})
     cls = scenario_class(scenario, params)
     check_engine(cls, engine)
-    if engine != "pybullet" and (wall or record is not None):
+    if engine == "mujoco" and gui:  # before the display check: no display would do
         raise InvalidArgumentError(
-            f"{'--wall' if wall else '--record'} runs on PyBullet only: drop --engine {engine}"
+            "--gui opens PyBullet's GUI, which MuJoCo runs do not have: drop --gui"
         )
     limit = cls.default_until if until is None else until
     if isinstance(limit, bool) or not (
@@ -347,7 +347,7 @@ def run_scenario(
     if wall:
         if ros2_clock is not None:
             raise InvalidArgumentError("--ros2-clock publishes sim time: drop --wall")
-        report = _run_on_wall_time(cls, float(limit), seed, gui, progress, record, params)
+        report = _run_on_wall_time(cls, float(limit), seed, gui, progress, record, params, engine)
     else:
         report = _run_on_sim_time(
             cls, float(limit), rtf, seed, params, gui, record, progress, ros2_clock, engine
@@ -575,16 +575,15 @@ def _run_on_wall_time(
     progress: Progress | None,
     record: Path | None = None,
     params: dict[str, ParamValue] | None = None,
+    engine: str = "pybullet",
 ) -> RunReport:
-    import pybullet as p
-
     from evclock.tools._record import open_recorder  # --record/--foxglove on wall time
 
-    cid = p.connect(p.GUI if gui else p.DIRECT)
+    engine_world, step, close = _wall_time_engine(cls, engine, gui)
     output: list[str] = []
     try:
         try:
-            scenario = _set_up(cls, cid, seed, output)
+            scenario = _set_up(cls, engine_world, seed, output)
         except Exception as exc:
             return _error_report(cls, seed, "wall", limit, output, exc)
         task_id = progress.add_task(cls.name, total=limit, rtf="1 (wall)") if progress else None
@@ -598,7 +597,7 @@ def _run_on_wall_time(
             async for tick in clock().rate(PHYSICS_HZ, name="world (physics)"):
                 if before is not None:
                     before()
-                p.stepSimulation(physicsClientId=cid)
+                step()
                 if after is not None:
                     after()
                 if recorder is not None:
@@ -611,7 +610,7 @@ def _run_on_wall_time(
         async def main() -> RunReport:
             clk = clock()
             if recorder is not None:
-                recorder.attach(None, clk, scenario.state_vector, client=cid)
+                recorder.attach(None, clk, scenario.state_vector, world=engine_world)
             start = clk.now().seconds
             physics = asyncio.create_task(world())
             outcome = _Outcome()
@@ -630,6 +629,7 @@ def _run_on_wall_time(
                     scenario=cls.name,
                     seed=seed,
                     mode="wall",
+                    engine=engine,
                     success=outcome.error is None and scenario.success(),
                     finished=finished,
                     sim_time_s=wall_s,
@@ -653,4 +653,31 @@ def _run_on_wall_time(
                 recorder.close(None if report is None else _outcome(report))
         return report
     finally:
-        p.disconnect(cid)
+        close()
+
+
+def _wall_time_engine(
+    cls: type[Any], engine: str, gui: bool
+) -> tuple[Any, Callable[[], None], Callable[[], None]]:
+    """The world a wall-time run builds scenario class ``cls`` in on ``engine``, one physics
+    step of it, and how to close it: the physics stands in for real hardware, stepped by a
+    wall-clock rate loop (no time source).
+
+    :returns: ``(world, step, close)``: a PyBullet client id, or an
+        ``evclock_sims.MuJoCoWorld`` (stepped once the scenario has built its model).
+    """
+    if engine == "mujoco":
+        _, world = open_engine(cls, engine, gui=gui)
+
+        def mj_step() -> None:
+            world.mj.mj_step(world.model, world.data)
+
+        return world, mj_step, lambda: None
+    import pybullet as p
+
+    cid = p.connect(p.GUI if gui else p.DIRECT)
+
+    def pybullet_step() -> None:
+        p.stepSimulation(physicsClientId=cid)
+
+    return cid, pybullet_step, lambda: p.disconnect(cid)

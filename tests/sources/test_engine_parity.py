@@ -361,7 +361,10 @@ def test_the_shipped_models_are_pybullet_datas_byte_for_byte() -> None:
 @pytest.mark.parametrize(
     ("args", "error"),
     [
-        (["run", "kuka", "--wall"], "error: --wall runs on PyBullet only: drop --engine mujoco"),
+        (
+            ["run", "kuka", "--gui"],
+            "error: --gui opens PyBullet's GUI, which MuJoCo runs do not have: drop --gui",
+        ),
         pytest.param(
             ["run", "husky"],
             "error: scenario 'husky' runs on pybullet only, not on mujoco: drop --engine mujoco",
