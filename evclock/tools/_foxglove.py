@@ -163,6 +163,22 @@ LOG_LEVELS = ((logging.CRITICAL, 5), (logging.ERROR, 4), (logging.WARNING, 3), (
 """Python logging level -> ``foxglove.LogLevel`` (at or above the level; DEBUG otherwise)."""
 
 
+def scene_entity(frame: str, time_ns: int) -> dict[str, Any]:
+    """An empty ``foxglove.SceneEntity`` locked to ``frame`` (its shapes are added after),
+    stamped ``time_ns``, shown until replaced."""
+    return {
+        "timestamp": stamp(time_ns),
+        "frame_id": frame,
+        "id": frame,
+        "lifetime": {"sec": 0, "nsec": 0},
+        "frame_locked": True,
+        "cubes": [],
+        "spheres": [],
+        "cylinders": [],
+        "models": [],
+    }
+
+
 def stamp(time_ns: int) -> dict[str, int]:
     """A time in integer nanoseconds as Foxglove's ``{sec, nsec}``."""
     sec, nsec = divmod(time_ns, 1_000_000_000)
@@ -440,20 +456,9 @@ class World:
                 frame = frames.get((body, shape[1]))
                 if frame is None:
                     continue
-                entity = entities.setdefault(
-                    frame,
-                    {
-                        "timestamp": stamp(time_ns),
-                        "frame_id": frame,
-                        "id": frame,
-                        "lifetime": {"sec": 0, "nsec": 0},
-                        "frame_locked": True,
-                        "cubes": [],
-                        "spheres": [],
-                        "cylinders": [],
-                        "models": [],
-                    },
-                )
+                entity = entities.get(frame)
+                if entity is None:
+                    entity = entities[frame] = scene_entity(frame, time_ns)
                 _add_shape(entity, shape, p)
         return {"deletions": [], "entities": list(entities.values())}
 

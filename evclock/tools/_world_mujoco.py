@@ -23,7 +23,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from evclock._extras import import_extra
-from evclock.tools._foxglove import WORLD_FRAME, stamp
+from evclock.tools._foxglove import WORLD_FRAME, scene_entity, stamp
 
 _HINGE_SLIDE = (2, 3)  # mjJNT_SLIDE, mjJNT_HINGE
 _FREE = 0  # mjJNT_FREE
@@ -195,20 +195,9 @@ class MuJoCoWorldReader:
             if rgba[3] <= 0:
                 continue
             body = int(model.geom_bodyid[geom])
-            entity = entities.setdefault(
-                body,
-                {
-                    "timestamp": stamp(time_ns),
-                    "frame_id": frames[body],
-                    "id": frames[body],
-                    "lifetime": {"sec": 0, "nsec": 0},
-                    "frame_locked": True,
-                    "cubes": [],
-                    "spheres": [],
-                    "cylinders": [],
-                    "models": [],
-                },
-            )
+            entity = entities.get(body)
+            if entity is None:
+                entity = entities[body] = scene_entity(frames[body], time_ns)
             self._add_geom(entity, geom, rgba)
         return {"deletions": [], "entities": [entities[b] for b in sorted(entities)]}
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import pytest
 from _remote_helpers import ROOT, WAIT, finish, spawn
+from _without_pybullet import CLI_WITHOUT_PYBULLET
 
 from evclock.remote import ParticipantLostError
 from evclock.tools._cli import run_scenario
@@ -36,17 +37,6 @@ def wait(proc: subprocess.Popen[str]) -> tuple[int, str]:
         proc.kill()
         out, err = proc.communicate(timeout=WAIT)
     return proc.returncode, out + err
-
-
-#: The command with PyBullet hidden: a MuJoCo split run needs none, on either end.
-CLI_WITHOUT_PYBULLET = [
-    sys.executable,
-    "-c",
-    "import sys\n"
-    "sys.modules['pybullet'] = sys.modules['pybullet_data'] = None\n"
-    "from evclock.tools._cli import main\n"
-    "main()",
-]
 
 
 def evclock_cli_mujoco(*args: str) -> subprocess.Popen[str]:
