@@ -25,7 +25,6 @@ needs_record = pytest.mark.skipif(
 )
 pytestmark = needs_record
 
-ROOT = Path(__file__).resolve().parents[2]
 KUKA_JOINTS = [f"lbr_iiwa_joint_{i}" for i in range(1, 8)]
 KUKA_LINKS = [f"lbr_iiwa/lbr_iiwa_link_{i}" for i in range(8)]
 WORLD_TOPICS = ("/evclock/state", "/evclock/joints", "/evclock/transforms", "/evclock/scene")
@@ -146,7 +145,9 @@ def test_trace_info_and_the_shipped_layout_read_a_mujoco_recording(
     assert info.returncode == 0, info.stderr
     assert info.stdout.splitlines()[0] == f"recording: {path} (evclock recording format 2)"
     assert "/evclock/scene               foxglove.SceneUpdate      1" in info.stdout
-    layout = json.loads((ROOT / "evclock" / "tools" / "foxglove_layout.json").read_text())
+    written = evclock_mujoco_trace("layout", "-o", str(tmp_path / "layout.json"), cwd=tmp_path)
+    assert written.returncode == 0, written.stderr
+    layout = json.loads((tmp_path / "layout.json").read_text())  # the installed package's
     panels = layout["configById"]
     paths = [p["value"] for key in ("Plot!joints", "Plot!timing") for p in panels[key]["paths"]]
     plotted = [p.split('name=="', 1)[1].split('"', 1)[0] for p in paths if "name==" in p]
