@@ -35,7 +35,7 @@ from typing import Any, Final
 import numpy as np
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
-from evclock.remote._checks import is_finite_number, is_int
+from evclock.remote._checks import all_finite_numbers, decode_request, is_finite_number, is_int
 
 SERVICE: Final = "mujoco"  # reads: request/reply
 TOPIC: Final = "mujoco"  # writes: ordered, applied at the end of the round
@@ -60,27 +60,17 @@ READS: Final = (
 WRITES: Final = ("ctrl", "qfrc_applied", "xfrc_applied")
 
 
-def _shown(value: object) -> str:
-    """``repr(value)``, cut short: an error message is not an echo of a hostile request."""
-    text = repr(value)
+def _cut(text: str) -> str:
+    """``text``, cut short: an error message is not an echo of a hostile request."""
     return text if len(text) <= 40 else f"{text[:37]}..."
+
+
+def _shown(value: object) -> str:
+    return _cut(repr(value))
 
 
 def _bad(field: object, reason: str) -> InvalidArgumentError:
     return InvalidArgumentError(f"mujoco.{field}: {reason}")
-
-
-def _reject_constant(token: str) -> None:
-    raise InvalidArgumentError(f"a mujoco request holds {token}: numbers must be finite")
-
-
-def _decoded(data: bytes) -> object:
-    try:
-        return json.loads(data, parse_constant=_reject_constant)
-    except InvalidArgumentError:  # (a ValueError: before the clause below)
-        raise
-    except (ValueError, TypeError, RecursionError):
-        raise ProtocolError("a mujoco request is not JSON") from None
 
 
 def _field_name(name: object, allowed: tuple[str, ...], kind: str) -> str:
@@ -97,8 +87,7 @@ def _unserved(name: str, kind: str) -> InvalidArgumentError:
         reason = "is read-only to controllers in another process"
     else:
         reason = "is not served to controllers in another process"
-    shown = name if len(name) <= 40 else f"{name[:37]}..."
-    return InvalidArgumentError(f"mujoco.{shown} {reason} ({label}: {', '.join(allowed)})")
+    return InvalidArgumentError(f"mujoco.{_cut(name)} {reason} ({label}: {', '.join(allowed)})")
 
 
 class MjDataService:
@@ -126,7 +115,7 @@ class MjDataService:
         :raises InvalidArgumentError: a field is not served, or the list is empty or too long.
         :raises ProtocolError: the request is not JSON.
         """
-        names = _decoded(data)
+        names = decode_request(data, "a mujoco request")
         if not isinstance(names, list) or not names:
             raise InvalidArgumentError(
                 f"a mujoco read is a list of field names (readable: {', '.join(READS)})"
@@ -147,7 +136,7 @@ class MjDataService:
             invalid.
         :raises ProtocolError: the request is not ``[field, indices, values]`` JSON.
         """
-        request = _decoded(message.data)
+        request = decode_request(message.data, "a mujoco request")
         if not isinstance(request, list) or len(request) != 3:
             raise ProtocolError("a mujoco write is not [field, indices, values] JSON")
         name, indices, values = request
@@ -173,9 +162,9 @@ class MjDataService:
             if index in seen:
                 raise _bad(field, f"index {index} is given twice")
             seen.add(index)
-        for value in values:
-            if not is_finite_number(value):
-                raise _bad(field, f"values must be finite numbers, got {_shown(value)}")
+        if not all_finite_numbers(values):
+            bad = next(value for value in values if not is_finite_number(value))
+            raise _bad(field, f"values must be finite numbers, got {_shown(bad)}")
         np.put(target, indices, values)  # in place, flat (row-major) indices
 
 

@@ -26,7 +26,7 @@ import json
 from typing import Any, Final
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
-from evclock.remote._checks import all_finite_numbers, is_finite_number, is_int
+from evclock.remote._checks import all_finite_numbers, decode_request, is_finite_number, is_int
 
 SERVICE: Final = "pybullet"  # reads: request/reply
 TOPIC: Final = "pybullet"  # commands: ordered, applied at the end of the round
@@ -364,10 +364,6 @@ def _bind(
     return kinds, values
 
 
-def _reject_constant(token: str) -> None:
-    raise InvalidArgumentError(f"a pybullet request holds {token}: numbers must be finite")
-
-
 def _plain(value: object) -> object:
     """numpy scalars and arrays as Python numbers and lists (exact)."""
     tolist = getattr(value, "tolist", None)
@@ -385,14 +381,13 @@ def encode_call(name: str, args: tuple[Any, ...], kwargs: dict[str, Any]) -> byt
 
 
 def _decode_call(data: bytes, allowed: frozenset[str]) -> tuple[str, list[Any], dict[str, Any]]:
-    try:
-        name, args, kwargs = json.loads(data, parse_constant=_reject_constant)
-    except InvalidArgumentError:  # (a ValueError: before the clause below)
-        raise
-    except (ValueError, TypeError, RecursionError):
-        raise ProtocolError("a pybullet request is not [name, args, kwargs] JSON") from None
+    shape = "[name, args, kwargs] JSON"
+    request = decode_request(data, "a pybullet request", shape)
+    if not isinstance(request, list) or len(request) != 3:
+        raise ProtocolError(f"a pybullet request is not {shape}")
+    name, args, kwargs = request
     if not isinstance(name, str) or not isinstance(args, list) or not isinstance(kwargs, dict):
-        raise ProtocolError("a pybullet request is not [name, args, kwargs] JSON")
+        raise ProtocolError(f"a pybullet request is not {shape}")
     if name not in allowed:
         kind = "command" if allowed is WRITES else "query"
         raise InvalidArgumentError(

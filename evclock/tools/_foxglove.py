@@ -310,17 +310,20 @@ def _text(raw: bytes | str) -> str:
     return raw.decode(errors="replace") if isinstance(raw, bytes) else str(raw)
 
 
-def _unique(name: str, taken: dict[str, int]) -> str:
+def unique_name(name: str, taken: dict[str, int]) -> str:
+    """``name``, or ``name_2``, ``name_3``... when it was taken before (``taken`` counts)."""
     count = taken.get(name, 0)
     taken[name] = count + 1
     return name if count == 0 else f"{name}_{count + 1}"
 
 
-def _vector(values: typing.Sequence[float]) -> dict[str, float]:
+def vector3(values: typing.Sequence[float]) -> dict[str, float]:
+    """A ``foxglove.Vector3`` of the first three values."""
     return {"x": float(values[0]), "y": float(values[1]), "z": float(values[2])}
 
 
-def _quaternion(values: typing.Sequence[float]) -> dict[str, float]:
+def quaternion_xyzw(values: typing.Sequence[float]) -> dict[str, float]:
+    """A ``foxglove.Quaternion`` of ``(x, y, z, w)`` values (PyBullet's order)."""
     return {
         "x": float(values[0]),
         "y": float(values[1]),
@@ -347,7 +350,7 @@ class World:
         for i in range(p.getNumBodies(physicsClientId=cid)):
             body = p.getBodyUniqueId(i, physicsClientId=cid)
             base, robot = (_text(x) for x in p.getBodyInfo(body, physicsClientId=cid))
-            name = _unique(robot or base or f"body{body}", taken)
+            name = unique_name(robot or base or f"body{body}", taken)
             bodies[name] = body
             self.links.append(_Link(body, -1, f"{name}/{base or 'base'}"))
             for j in range(p.getNumJoints(body, physicsClientId=cid)):
@@ -393,10 +396,10 @@ class World:
                 pos, vel = p.getJointState(body, j, physicsClientId=cid)[:2]
                 joints[joint] = {"position": pos, "velocity": vel}
             state[name] = {
-                "position": _vector(position),
-                "orientation": _quaternion(orientation),
-                "linear_velocity": _vector(linear),
-                "angular_velocity": _vector(angular),
+                "position": vector3(position),
+                "orientation": quaternion_xyzw(orientation),
+                "linear_velocity": vector3(linear),
+                "angular_velocity": vector3(angular),
                 "joints": joints,
             }
         return state
@@ -439,8 +442,8 @@ class World:
                     "timestamp": stamped,
                     "parent_frame_id": WORLD_FRAME,
                     "child_frame_id": link.frame,
-                    "translation": _vector(position),
-                    "rotation": _quaternion(orientation),
+                    "translation": vector3(position),
+                    "rotation": quaternion_xyzw(orientation),
                 }
             )
         return {"transforms": transforms}
@@ -485,20 +488,20 @@ def _mesh(filename: str) -> tuple[str, str] | None:
 
 def _add_shape(entity: dict[str, Any], shape: Any, p: Any) -> None:
     geometry, dims, filename = shape[2], shape[3], _text(shape[4])
-    pose = {"position": _vector(shape[5]), "orientation": _quaternion(shape[6])}
+    pose = {"position": vector3(shape[5]), "orientation": quaternion_xyzw(shape[6])}
     r, g, b, a = (float(c) for c in shape[7])
     color = {"r": r, "g": g, "b": b, "a": a}
     if geometry == p.GEOM_BOX:
-        entity["cubes"].append({"pose": pose, "size": _vector(dims), "color": color})
+        entity["cubes"].append({"pose": pose, "size": vector3(dims), "color": color})
     elif geometry == p.GEOM_SPHERE:
         d = 2 * float(dims[0])
-        entity["spheres"].append({"pose": pose, "size": _vector((d, d, d)), "color": color})
+        entity["spheres"].append({"pose": pose, "size": vector3((d, d, d)), "color": color})
     elif geometry in (p.GEOM_CYLINDER, p.GEOM_CAPSULE):
         d = 2 * float(dims[1])
         entity["cylinders"].append(
             {
                 "pose": pose,
-                "size": _vector((d, d, float(dims[0]))),
+                "size": vector3((d, d, float(dims[0]))),
                 "bottom_scale": 1.0,
                 "top_scale": 1.0,
                 "color": color,
@@ -510,7 +513,7 @@ def _add_shape(entity: dict[str, Any], shape: Any, p: Any) -> None:
             entity["models"].append(
                 {
                     "pose": pose,
-                    "scale": _vector(dims),
+                    "scale": vector3(dims),
                     "color": color,
                     "override_color": True,
                     "url": "",

@@ -23,7 +23,14 @@ from collections.abc import Sequence
 from typing import Any
 
 from evclock._extras import import_extra
-from evclock.tools._foxglove import WORLD_FRAME, scene_entity, stamp
+from evclock.tools._foxglove import (
+    WORLD_FRAME,
+    quaternion_xyzw,
+    scene_entity,
+    stamp,
+    unique_name,
+    vector3,
+)
 
 _HINGE_SLIDE = (2, 3)  # mjJNT_SLIDE, mjJNT_HINGE
 _FREE = 0  # mjJNT_FREE
@@ -37,31 +44,9 @@ def _name(mj: Any, model: Any, kind: Any, index: int, fallback: str) -> str:
     return str(text) if text else fallback
 
 
-def _vector(values: Sequence[float]) -> dict[str, float]:
-    return {"x": float(values[0]), "y": float(values[1]), "z": float(values[2])}
-
-
 def _wxyz(values: Sequence[float]) -> dict[str, float]:
-    """MuJoCo's ``(w, x, y, z)`` quaternion as Foxglove's ``{x, y, z, w}``."""
-    return {
-        "x": float(values[1]),
-        "y": float(values[2]),
-        "z": float(values[3]),
-        "w": float(values[0]),
-    }
-
-
-def _rotate(q: Sequence[float], v: Sequence[float]) -> tuple[float, float, float]:
-    """``v`` rotated by the unit quaternion ``q`` = ``(w, x, y, z)``."""
-    w, x, y, z = (float(c) for c in q)
-    vx, vy, vz = (float(c) for c in v)
-    # t = 2 (q_xyz x v); v' = v + w t + q_xyz x t
-    tx, ty, tz = 2 * (y * vz - z * vy), 2 * (z * vx - x * vz), 2 * (x * vy - y * vx)
-    return (
-        vx + w * tx + (y * tz - z * ty),
-        vy + w * ty + (z * tx - x * tz),
-        vz + w * tz + (x * ty - y * tx),
-    )
+    """MuJoCo's ``(w, x, y, z)`` quaternion as a ``foxglove.Quaternion``."""
+    return quaternion_xyzw((values[1], values[2], values[3], values[0]))
 
 
 class MuJoCoWorldReader:
@@ -87,7 +72,7 @@ class MuJoCoWorldReader:
         for root in roots:
             own = _name(mj, model, body_kind, root, f"body{root}")
             name = model_name if len(roots) == 1 and model_name else own
-            self.bodies[_unique(name, taken)] = root
+            self.bodies[unique_name(name, taken)] = root
         tree_of = {root: name for name, root in self.bodies.items()}
         self._frames: list[tuple[int, str]] = []  # body id, frame name
         for b in range(1, model.nbody):
@@ -137,10 +122,10 @@ class MuJoCoWorldReader:
         for name, root in self.bodies.items():
             mj.mj_objectVelocity(model, current, mj.mjtObj.mjOBJ_BODY, root, velocity, 0)
             state[name] = {
-                "position": _vector(current.xpos[root]),
+                "position": vector3(current.xpos[root]),
                 "orientation": _wxyz(current.xquat[root]),
-                "linear_velocity": _vector(velocity[3:].tolist()),
-                "angular_velocity": _vector(velocity[:3].tolist()),
+                "linear_velocity": vector3(velocity[3:].tolist()),
+                "angular_velocity": vector3(velocity[:3].tolist()),
                 "joints": {
                     joint: {"position": float(current.qpos[q]), "velocity": float(current.qvel[d])}
                     for joint, tree, q, d in self._joints
@@ -174,7 +159,7 @@ class MuJoCoWorldReader:
                     "timestamp": stamped,
                     "parent_frame_id": WORLD_FRAME,
                     "child_frame_id": frame,
-                    "translation": _vector(current.xpos[body]),
+                    "translation": vector3(current.xpos[body]),
                     "rotation": _wxyz(current.xquat[body]),
                 }
                 for body, frame in self._frames
@@ -217,38 +202,42 @@ class MuJoCoWorldReader:
         size = [float(s) for s in model.geom_size[geom]]
         position = [float(c) for c in model.geom_pos[geom]]
         quat = [float(c) for c in model.geom_quat[geom]]
-        pose = {"position": _vector(position), "orientation": _wxyz(quat)}
+        pose = {"position": vector3(position), "orientation": _wxyz(quat)}
         color = {"r": rgba[0], "g": rgba[1], "b": rgba[2], "a": rgba[3]}
         types = mj.mjtGeom
         if kind == types.mjGEOM_BOX:
             box = (2 * size[0], 2 * size[1], 2 * size[2])
-            entity["cubes"].append({"pose": pose, "size": _vector(box), "color": color})
+            entity["cubes"].append({"pose": pose, "size": vector3(box), "color": color})
         elif kind == types.mjGEOM_PLANE:
             x, y = (2 * s if s > 0 else _INFINITE_PLANE_M for s in size[:2])
-            entity["cubes"].append({"pose": pose, "size": _vector((x, y, 0.001)), "color": color})
+            entity["cubes"].append({"pose": pose, "size": vector3((x, y, 0.001)), "color": color})
         elif kind in (types.mjGEOM_SPHERE, types.mjGEOM_ELLIPSOID):
             radii = size if kind == types.mjGEOM_ELLIPSOID else [size[0]] * 3
             diameters = (2 * radii[0], 2 * radii[1], 2 * radii[2])
-            entity["spheres"].append({"pose": pose, "size": _vector(diameters), "color": color})
+            entity["spheres"].append({"pose": pose, "size": vector3(diameters), "color": color})
         elif kind in (types.mjGEOM_CYLINDER, types.mjGEOM_CAPSULE):
             d = 2 * size[0]
             entity["cylinders"].append(
                 {
                     "pose": pose,
-                    "size": _vector((d, d, 2 * size[1])),
+                    "size": vector3((d, d, 2 * size[1])),
                     "bottom_scale": 1.0,
                     "top_scale": 1.0,
                     "color": color,
                 }
             )
             if kind == types.mjGEOM_CAPSULE:  # the caps: a sphere at each end
+                import numpy
+
                 for sign in (1.0, -1.0):
-                    offset = _rotate(quat, (0.0, 0.0, sign * size[1]))
-                    end = [p + o for p, o in zip(position, offset, strict=True)]
+                    offset = numpy.zeros(3)  # the axis end, turned into the body's frame
+                    axis_end = numpy.array([0.0, 0.0, sign * size[1]])
+                    mj.mju_rotVecQuat(offset, axis_end, model.geom_quat[geom])
+                    end = model.geom_pos[geom] + offset
                     entity["spheres"].append(
                         {
-                            "pose": {"position": _vector(end), "orientation": _wxyz(quat)},
-                            "size": _vector((d, d, d)),
+                            "pose": {"position": vector3(end), "orientation": _wxyz(quat)},
+                            "size": vector3((d, d, d)),
                             "color": color,
                         }
                     )
@@ -256,7 +245,7 @@ class MuJoCoWorldReader:
             entity["models"].append(
                 {
                     "pose": pose,
-                    "scale": _vector((1.0, 1.0, 1.0)),
+                    "scale": vector3((1.0, 1.0, 1.0)),
                     "color": color,
                     "override_color": True,
                     "url": "",
@@ -291,9 +280,3 @@ class MuJoCoWorldReader:
         data = header + numpy.uint32(faces).tobytes() + table.tobytes()
         self._meshes[mesh] = base64.b64encode(data).decode()
         return self._meshes[mesh]
-
-
-def _unique(name: str, taken: dict[str, int]) -> str:
-    count = taken.get(name, 0)
-    taken[name] = count + 1
-    return name if count == 0 else f"{name}_{count + 1}"

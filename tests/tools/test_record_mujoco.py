@@ -252,3 +252,23 @@ def test_a_mujoco_split_run_is_recorded_by_the_simulation(
             (m.time_ns, m.data) for m in alone.topic(topic)
         ], topic
     assert split.metadata["evclock.outcome"]["verdict"] == "cut short"
+
+
+def test_a_capsule_is_drawn_as_a_cylinder_and_a_sphere_at_each_end() -> None:
+    mujoco = pytest.importorskip("mujoco")
+    from evclock.tools._world_mujoco import MuJoCoWorldReader
+
+    model = mujoco.MjModel.from_xml_string(
+        '<mujoco><worldbody><body name="b"><freejoint/><geom type="capsule" size="0.1 0.3" '
+        'pos="1 2 3" euler="90 0 0"/></body></worldbody></mujoco>'
+    )
+    (entity,) = MuJoCoWorldReader(model, mujoco.MjData(model)).scene(0)["entities"]
+    (cylinder,) = entity["cylinders"]
+    assert cylinder["size"] == {"x": 0.2, "y": 0.2, "z": 0.6}
+    # The capsule's axis (its z) turned 90 degrees about x: the caps lie along y.
+    ends = [sphere["pose"]["position"] for sphere in entity["spheres"]]
+    assert ends == [
+        {"x": 1.0, "y": pytest.approx(1.7), "z": pytest.approx(3.0)},
+        {"x": 1.0, "y": pytest.approx(2.3), "z": pytest.approx(3.0)},
+    ]
+    assert all(sphere["size"] == {"x": 0.2, "y": 0.2, "z": 0.2} for sphere in entity["spheres"])
