@@ -144,8 +144,8 @@ class ClockLostError(RemoteClockError):
 class JoinRefusedError(RemoteClockError):
     """Joining a clock server failed its checks, on either side: the server refused this
     process (name taken, protocol version, token, another user), or this process refused the
-    server (a server running as another user, or one that could not prove it knows the
-    token)."""
+    server (a server running as another user, one that could not prove it knows the token,
+    or one that answered a participant with a token without proving itself first)."""
 
 
 class ParticipantLostError(RemoteClockError):

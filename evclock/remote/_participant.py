@@ -78,7 +78,9 @@ class RemoteClockSource(TimeSource):
 
     Joining authenticates the server: on a Unix socket it must run as this user (or
     ``?server_uid=``), and with a ``?token=`` it must prove it knows the token before this
-    process proves it does (the token itself is never sent). TCP needs a token.
+    process proves it does (the token itself is never sent): its first answer must be a
+    CHALLENGE whose proof verifies, and anything else first ends the join (a busy answer is
+    retried). TCP needs a token.
 
     :raises InvalidArgumentError: a TCP address without ``?token=``.
     :raises JoinRefusedError: the server refused this process, or it is not who it should be.
@@ -201,6 +203,12 @@ class RemoteClockSource(TimeSource):
         with contextlib.suppress(BrokenPipeError, ConnectionResetError):
             sock.sendall(proto.hello(mode, self.name, nonce))
         kind, payload = self._read_one(sock, deadline, addr, self._reader, self._early)
+        if addr.token is not None and kind != proto.CHALLENGE:
+            # With a token the server must prove itself first: whatever else answers the
+            # HELLO (a WELCOME, a GRANT, a REFUSE) comes from a server that has not, so it is
+            # not trusted with anything more than the HELLO already sent.
+            self._check_unproven_answer(addr, kind, payload)
+            return None  # a busy answer: try again
         if kind == proto.CHALLENGE:
             server_nonce, server_proof = proto.parse_challenge(payload)
             transcript = proto.transcript(proto.VERSION, mode, self.name, nonce, server_nonce)
@@ -242,6 +250,29 @@ class RemoteClockSource(TimeSource):
         except ValueError:
             raise ProtocolError(f"{addr} sent unreadable scenario info") from None
         return sock, now_ns, info
+
+    def _check_unproven_answer(self, addr: Address, kind: int, payload: bytes) -> None:
+        """A first answer other than a CHALLENGE, to a participant with a token: returns for
+        a busy REFUSE (try again), else raises :class:`~evclock.remote.JoinRefusedError`.
+
+        A busy answer is only retried: it gets nothing more than another HELLO, and an
+        impostor that keeps answering busy delays the join no more than one that never
+        answers. Anything else ends the join, naming the unauthenticated server; a REFUSE's
+        reason is shown quoted and shortened, as the unproven text it is.
+        """
+        what = f"a frame of kind {kind} ({bytes((kind,))!r})"
+        if kind == proto.REFUSE:
+            code, reason = proto.parse_refuse(payload)
+            if code == proto.REFUSE_BUSY:
+                return None
+            what = f"a REFUSE (saying {reason[:200]!r})"
+        elif kind == proto.WELCOME:
+            what = "a WELCOME"
+        raise JoinRefusedError(
+            f"the clock server at {addr} answered the HELLO with {what} before proving it "
+            "knows the token: it is an unauthenticated server (not the simulation you "
+            "meant, or not an evclock clock server); nothing but the HELLO was sent to it"
+        )
 
     @staticmethod
     def _read_one(

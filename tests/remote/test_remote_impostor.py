@@ -1,0 +1,140 @@
+"""A participant with a token trusts nothing from a server that has not proved it knows the
+token: every first answer other than a verified CHALLENGE ends the join, and nothing but the
+HELLO reaches the server.
+
+Each test runs a real impostor process listening on a loopback TCP port, answering the
+HELLO as a real server would not, and recording every byte it receives; the victim is a real
+participant process. Every wait is bounded (``finish``/``read_line``, ``?timeout=``, the
+impostor's own socket timeouts).
+"""
+
+from __future__ import annotations
+
+import secrets
+from pathlib import Path
+
+import pytest
+from _remote_helpers import finish, read_line, spawn
+
+from evclock.remote import _protocol as proto
+
+#: A lockstep participant that would print its start time once joined.
+VICTIM = """
+import evclock
+async def main():
+    print("joined at", evclock.clock().now().nanoseconds, flush=True)
+    await evclock.clock().sleep(0.001)
+evclock.run(main())
+"""
+
+#: Listens on a loopback port (printed), answers each connection's HELLO with the frames in
+#: argv[1] (hex), records every byte it receives from all connections to argv[2], and exits
+#: once no new connection came for argv[3] seconds.
+IMPOSTOR = """
+import socket, sys
+from evclock.remote import _protocol as proto
+answer = bytes.fromhex(sys.argv[1])
+listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+listener.bind(("127.0.0.1", 0))
+listener.listen(8)
+listener.settimeout(30)  # for the first connection
+print("listening", listener.getsockname()[1], flush=True)
+received = b""
+while True:
+    try:
+        conn, _ = listener.accept()
+    except TimeoutError:
+        break
+    listener.settimeout(float(sys.argv[3]))
+    conn.settimeout(30)
+    reader = proto.Reader()
+    data = b""
+    while not reader.feed(data):
+        data = conn.recv(4096)
+        received += data
+        if not data:
+            break
+    try:
+        conn.sendall(answer)
+        while chunk := conn.recv(4096):
+            received += chunk
+    except OSError:
+        pass
+    conn.close()
+open(sys.argv[2], "wb").write(received)
+"""
+
+TOKEN = secrets.token_urlsafe(32)
+
+
+def _run_impostor(tmp_path: Path, answer: bytes, timeout: float = 10) -> tuple[int, str, bytes]:
+    """The victim's exit code and stderr, and every byte the impostor received."""
+    dump = tmp_path / "received.bin"
+    impostor = spawn(tmp_path, IMPOSTOR, answer.hex(), str(dump), "2")
+    words = read_line(impostor).split()
+    assert words[0] == "listening", words
+    victim = spawn(
+        tmp_path,
+        VICTIM,
+        EVCLOCK_CLOCK=f"tcp://127.0.0.1:{words[1]}?name=victim&token={TOKEN}&timeout={timeout}",
+    )
+    code, out, err = finish(victim)
+    assert "joined at" not in out
+    impostor_code, _, impostor_err = finish(impostor)
+    assert impostor_code == 0, impostor_err
+    return code, err, dump.read_bytes()
+
+
+def _only_hellos(received: bytes) -> list[int]:
+    frames = proto.Reader().feed(received)
+    assert TOKEN.encode() not in received
+    return [kind for kind, _ in frames]
+
+
+ANSWERS = {
+    "welcome and grant": (
+        proto.welcome(0, proto.MAX_FRAME, b"{}") + proto.grant(0),
+        "a WELCOME",
+    ),
+    "grant alone": (proto.grant(0), f"a frame of kind {proto.GRANT} (b'G')"),
+    "a final refusal": (
+        proto.refuse("participant 'controllers' left\nforged line"),
+        "a REFUSE (saying \"participant 'controllers' left\\nforged line\")",
+    ),
+    "time then welcome": (
+        proto.time_frame(5) + proto.welcome(5, proto.MAX_FRAME, b"{}"),
+        f"a frame of kind {proto.TIME} (b'T')",
+    ),
+    "an unknown kind": (b"\x01\x00\x00\x00Q", "a frame of kind 81 (b'Q')"),
+}
+
+
+@pytest.mark.parametrize("variant", list(ANSWERS))
+def test_a_participant_with_a_token_refuses_a_server_that_never_proved_itself(
+    tmp_path: Path, variant: str
+) -> None:
+    answer, what = ANSWERS[variant]
+    code, err, received = _run_impostor(tmp_path, answer)
+    assert code == 1
+    port = err.split("tcp://127.0.0.1:")[1].split()[0]
+    assert err.strip().splitlines()[-1] == (
+        f"evclock.remote.JoinRefusedError: the clock server at tcp://127.0.0.1:{port} "
+        f"answered the HELLO with {what} before proving it knows the token: it is an "
+        "unauthenticated server (not the simulation you meant, or not an evclock clock "
+        "server); nothing but the HELLO was sent to it"
+    )
+    assert _only_hellos(received) == [proto.HELLO]
+
+
+def test_an_unproven_busy_answer_is_only_retried(tmp_path: Path) -> None:
+    # Busy answers come before the server's proof: the participant sends another HELLO and
+    # nothing else, and gives up at its join timeout as with a server that never answers.
+    code, err, received = _run_impostor(
+        tmp_path, proto.refuse("busy", proto.REFUSE_BUSY), timeout=1
+    )
+    assert code == 1
+    assert "ClockLostError" in err.strip().splitlines()[-1]
+    assert "stayed busy" in err
+    kinds = _only_hellos(received)
+    assert kinds == [proto.HELLO] * len(kinds)
+    assert len(kinds) >= 2  # it tried again
