@@ -23,7 +23,8 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(os.environ.get("EVCLOCK_SOURCE_TREE") or Path(__file__).resolve().parent.parent)
-PACKAGES = ("evclock", "evclock_sims")
+#: Each installed package and its folder in the source tree (pyproject.toml's package-dir).
+PACKAGES = {"evclock": "evclock", "evclock_sims": "sims"}
 # Files the package needs at run time besides its modules.
 DATA_FILES = (
     "evclock/py.typed",
@@ -39,9 +40,9 @@ DATA_FILES = (
 def source_files() -> set[str]:
     """Every module and needed data file of the source tree, as wheel paths."""
     found: set[str] = set(DATA_FILES)
-    for package in PACKAGES:
-        for path in (ROOT / package).rglob("*.py"):
-            found.add(path.relative_to(ROOT).as_posix())
+    for package, folder in PACKAGES.items():
+        for path in (ROOT / folder).rglob("*.py"):
+            found.add(f"{package}/{path.relative_to(ROOT / folder).as_posix()}")
     return found
 
 
@@ -56,10 +57,8 @@ def wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     tree = tmp_path_factory.mktemp("tree")
     for name in ("pyproject.toml", "README.md", "LICENSE"):
         shutil.copy2(ROOT / name, tree / name)
-    for package in PACKAGES:
-        shutil.copytree(
-            ROOT / package, tree / package, ignore=shutil.ignore_patterns("__pycache__")
-        )
+    for folder in PACKAGES.values():
+        shutil.copytree(ROOT / folder, tree / folder, ignore=shutil.ignore_patterns("__pycache__"))
     out = tmp_path_factory.mktemp("dist")
     subprocess.run(
         [sys.executable, "-m", "build", "--wheel", "--outdir", str(out), str(tree)],

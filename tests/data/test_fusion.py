@@ -1,4 +1,4 @@
-"""The sensor-fusion scenario (evclock_sims/fusion.py), its report in `evclock run`, the example."""
+"""The sensor-fusion scenario (sims/fusion.py), its report in `evclock run`, the example."""
 
 from __future__ import annotations
 

@@ -118,7 +118,7 @@ def test_kuka_recording_uses_foxglove_schemas_named_joints_and_sim_time(kuka: Pa
         assert [j["name"] for j in data["joints"]] == KUKA_JOINTS
         assert data["timestamp"] == {"sec": t // 10**9, "nsec": t % 10**9}
         assert all(isinstance(j["effort"], float) for j in data["joints"])
-    # The rest pose (REST_POSE in evclock_sims/kuka.py) is where joint 2 starts.
+    # The rest pose (REST_POSE in sims/kuka.py) is where joint 2 starts.
     assert joints[0][1]["joints"][1]["position"] == pytest.approx(0.4)
     assert all(log == publish for _, log, publish, _ in messages)
     transforms = next(data for topic, _, _, data in messages if topic == "/evclock/transforms")

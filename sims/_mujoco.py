@@ -9,8 +9,9 @@ a :class:`MuJoCoWorld` instead of a PyBullet client builds its robot with
 time.
 
 The URDFs come from ``pybullet_data`` when it is installed, else from byte-identical copies
-shipped in ``evclock_sims/models`` (see its LICENSE.txt), so the MuJoCo scenarios run - and give
-the same trajectories - with or without PyBullet (which has wheels for CPython 3.11 only).
+shipped in the package's ``models`` folder (see its LICENSE.txt), so the MuJoCo scenarios run -
+and give the same trajectories - with or without PyBullet (which has wheels for CPython 3.11
+only).
 """
 
 from __future__ import annotations
