@@ -8,31 +8,14 @@ exact and asserted line by line; wall-time runs are only checked for what they r
 
 from __future__ import annotations
 
-import os
 import re
-import subprocess
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
-EXAMPLES = ROOT / "examples"
-TIMEOUT = 60  # seconds; a generous guard against hangs, not a performance assertion
+import _examples as examples
 
 
 def run_example(name: str, **env: str) -> str:
-    """Run ``examples/<name>`` with this interpreter; return stdout (fails on non-zero exit)."""
-    environ = {k: v for k, v in os.environ.items() if k != "EVCLOCK_USE_SIM_TIME"}
-    environ.update(env)
-    proc = subprocess.run(
-        [sys.executable, str(EXAMPLES / name)],
-        cwd=ROOT,
-        env=environ,
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT,
-        check=False,
-    )
-    assert proc.returncode == 0, f"{name} exited {proc.returncode}:\n{proc.stderr}"
+    """Run ``examples/<name>``; its stdout (fails on a non-zero exit or any stderr)."""
+    proc = examples.run_example(name, **env)
     assert proc.stderr == "", proc.stderr
     return proc.stdout
 

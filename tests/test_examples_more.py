@@ -2,27 +2,13 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
-
-ROOT = Path(__file__).resolve().parent.parent
+from _examples import output_lines
+from _examples import run_example as examples_run
 
 
 def run_example(name: str) -> list[str]:
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / name)],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr
-    # PyBullet prints a build banner on start-up; it is not the example's output.
-    return [line for line in proc.stdout.splitlines() if not line.startswith("pybullet build")]
+    return output_lines(examples_run(name))
 
 
 def test_pacing_example_pauses_steps_and_resumes_exactly() -> None:

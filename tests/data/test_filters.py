@@ -8,12 +8,10 @@ in ``ros_reference.py`` (models written from the ROS sources, not the ROS binari
 from __future__ import annotations
 
 import asyncio
-import subprocess
-import sys
-from pathlib import Path
 from typing import Any
 
 import pytest
+from _examples import run_example
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from ros_reference import RosCache, RosTimeSequencer
@@ -323,16 +321,7 @@ def test_reset_on_jump_can_be_turned_off() -> None:
 
 def test_the_fusion_pipeline_example_runs_as_documented() -> None:
     pytest.importorskip("pybullet")
-    root = Path(__file__).resolve().parents[2]
-    proc = subprocess.run(
-        [sys.executable, "examples/fusion_pipeline.py"],
-        cwd=root,
-        capture_output=True,
-        text=True,
-        timeout=300,  # a guard against hangs on a loaded machine, not a timing check
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr
+    proc = run_example("fusion_pipeline.py")
     assert proc.stdout.splitlines() == [
         "fusion pipeline seed 0: success",
         "detections fused: 89",

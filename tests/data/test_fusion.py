@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from _examples import run_example
 from typer.testing import CliRunner
 
 from evclock.tools._cli import app, run_scenario
@@ -36,15 +37,7 @@ done at 10.930000000 s (sim), dropped: {'camera': 0, 'imu': 73, 'lidar': 1}
 
 
 def test_sensor_fusion_example_prints_exactly_this() -> None:
-    proc = subprocess.run(
-        [sys.executable, "examples/sensor_fusion.py"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr
+    proc = run_example("sensor_fusion.py")
     assert proc.stderr == ""
     assert proc.stdout == EXAMPLE_OUTPUT
 

@@ -12,10 +12,8 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import itertools
-import os
 import re
 import selectors
-import subprocess
 import sys
 import threading
 from collections.abc import Awaitable, Callable, Coroutine
@@ -24,6 +22,7 @@ from typing import Any, TypeVar
 
 import pytest
 import uvloop
+from _examples import run_example
 from _paused_waits import PausedWaits
 
 import evclock
@@ -1277,17 +1276,7 @@ evclock.clock() is now a WallClock
 
 @pytest.mark.skipif(sys.platform == "win32", reason="the loop class name differs on Windows")
 def test_notebook_style_example_runs_on_a_loop_it_does_not_own() -> None:
-    environ = {k: v for k, v in os.environ.items() if k != "EVCLOCK_USE_SIM_TIME"}
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "notebook_style.py")],
-        cwd=ROOT,
-        env=environ,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr
+    proc = run_example("notebook_style.py")
     assert proc.stderr == ""
     assert proc.stdout == NOTEBOOK_STYLE
 

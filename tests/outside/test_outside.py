@@ -23,6 +23,7 @@ import anyio
 import anyio.from_thread
 import anyio.to_process
 import pytest
+from _examples import run_example
 
 import evclock
 
@@ -995,15 +996,7 @@ def test_driver_waits_from_another_thread_raise_wrong_thread_error() -> None:
 
 
 def test_outside_world_example_prints_exact_sim_times() -> None:
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    proc = subprocess.run(
-        [PY, os.path.join(root, "examples", "outside_world.py")],
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr
+    proc = run_example("outside_world.py")
     assert proc.stdout.splitlines() == [
         "child process said 'computed' at 0.000000000 s (sim)",
         "thread handed over 'done' at 0.000000000 s (sim)",

@@ -2,23 +2,11 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[2]
+from _examples import run_example
 
 
 def test_custom_stepping_source_example() -> None:
-    proc = subprocess.run(
-        [sys.executable, str(ROOT / "examples" / "custom_stepping_source.py")],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=60,
-        check=False,
-    )
-    assert proc.returncode == 0, proc.stderr
+    proc = run_example("custom_stepping_source.py")
     assert proc.stdout.splitlines() == [
         "0.000000000 s (sim): x = +1.000",
         "0.200000000 s (sim): x = +0.921",

@@ -9,7 +9,6 @@ from __future__ import annotations
 import asyncio
 import itertools
 import math
-import os
 import re
 import struct
 import subprocess
@@ -20,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _examples import run_example
 
 # PyBullet has wheels for CPython 3.11 only: elsewhere these tests are skipped (conftest.py
 # makes a missing PyBullet an error on 3.11).
@@ -1171,20 +1171,7 @@ def test_same_program_twice_gives_identical_trajectories() -> None:
 
 
 def test_falling_box_example_runs() -> None:
-    env = {k: v for k, v in os.environ.items() if k != "EVCLOCK_USE_SIM_TIME"}
-    outputs = []
-    for _ in range(2):
-        proc = subprocess.run(
-            [sys.executable, "examples/pybullet_falling_box.py"],
-            cwd=ROOT,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=60,
-            check=False,
-        )
-        assert proc.returncode == 0, proc.stderr
-        outputs.append(proc.stdout)
+    outputs = [run_example("pybullet_falling_box.py").stdout for _ in range(2)]
     assert outputs[0] == outputs[1]  # deterministic across processes
     lines = outputs[0].splitlines()
     assert len(lines) == 42
