@@ -7,7 +7,11 @@ clock="unix://...")`` and follows it or runs in lockstep with it.
 * :mod:`._address` parses ``unix:///path`` / ``tcp://host:port`` endpoints, opens sockets,
   makes the private default directory and reads a Unix peer's credentials;
 * :mod:`._protocol` is the length-prefixed binary framing and its authenticated handshake;
-* :mod:`._server` serves a :class:`~evclock.SimEventLoop`'s time (follow and lockstep);
+* :mod:`._server` serves a :class:`~evclock.SimEventLoop`'s time (follow and lockstep),
+  assembled from one part per trust boundary over :mod:`._core` (the shared state and
+  sending): :mod:`._admission` (connecting, the handshake, joining), :mod:`._rounds` (holds,
+  deadlines, jumps, followers' time), :mod:`._routing` (publications and subscriptions) and
+  :mod:`._services` (calls); :mod:`._peer` is one connection;
 * :mod:`._participant` is the time source of a process that joins (``clock="unix://..."``);
 * :mod:`._physics` lets scenario controllers call PyBullet in the simulation process.
 * :mod:`._mujoco_physics` lets them read and write MuJoCo's ``MjData`` there.

@@ -38,7 +38,7 @@ from evclock._errors import (
 from evclock.kernel._source import Gate
 from evclock.remote import _protocol as proto
 from evclock.remote._address import Address, connect, parse_address, peer_credentials
-from evclock.remote._server import Message
+from evclock.remote._routing import Message
 from evclock.sources import TimeSource
 from evclock.time._time import SIM, new_time
 

@@ -23,8 +23,8 @@ import pytest
 from _remote_helpers import finish, read_line, spawn
 
 import evclock
+from evclock.remote import _admission
 from evclock.remote import _protocol as proto
-from evclock.remote import _server
 
 #: Joins, says "working" at 10 ms of sim time and then blocks inside that step.
 STUCK = """
@@ -344,7 +344,7 @@ def test_bad_clients_are_refused_and_the_server_keeps_serving(
 def test_a_connection_that_never_greets_is_closed(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    monkeypatch.setattr(_server, "HELLO_TIMEOUT", 0.3)
+    monkeypatch.setattr(_admission, "HELLO_TIMEOUT", 0.3)
     url = url_in(tmp_path)
 
     async def main() -> bytes:

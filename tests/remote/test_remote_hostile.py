@@ -20,8 +20,8 @@ import pytest
 from _remote_helpers import finish, read_line, spawn
 
 import evclock
+from evclock.remote import _admission
 from evclock.remote import _protocol as proto
-from evclock.remote import _server
 from evclock.remote._address import private_dir
 from evclock.remote._server import default_address
 
@@ -394,8 +394,8 @@ def test_memory_stays_bounded_under_oversized_and_slow_connections(tmp_path: Pat
         if flood is not None:
             flood.kill()
             finish(flood)
-    assert stats["pending"] <= _server.MAX_PENDING
-    assert stats["buffered"] <= _server.MAX_PENDING * (proto.PRE_AUTH_MAX_FRAME + 4)
+    assert stats["pending"] <= _admission.MAX_PENDING
+    assert stats["buffered"] <= _admission.MAX_PENDING * (proto.PRE_AUTH_MAX_FRAME + 4)
     assert stats["grown_kib"] < 16 * 1024
 
 

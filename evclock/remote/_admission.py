@@ -1,0 +1,172 @@
+"""Admission: who may connect, and who may join - everything before authentication.
+
+A new connection is *pending* until its handshake completes: it is read with the
+pre-authentication frame limit (``proto.PRE_AUTH_MAX_FRAME``), at most ``MAX_PENDING``
+connections are pending at once, and each has ``HELLO_TIMEOUT`` wall seconds to finish. On a
+Unix socket the peer's user id (``SO_PEERCRED``) must be one the server admits. The handshake
+is HELLO -> CHALLENGE (the server's proof first) -> PROOF -> WELCOME or REFUSE; a
+participant that passed it joins (``_on_hello``) and is read with the documented frame
+limit from then on.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hmac
+import logging
+import socket
+from typing import Final
+
+from evclock._errors import ProtocolError
+from evclock.remote import _protocol as proto
+from evclock.remote._address import peer_credentials
+from evclock.remote._core import ServerCore
+from evclock.remote._peer import Peer
+
+log = logging.getLogger("evclock.remote")
+
+#: Wall seconds a new connection has to complete its handshake (HELLO and PROOF).
+HELLO_TIMEOUT: Final = 5.0
+#: Connections in their handshake at once; more are refused as busy (the participant retries).
+MAX_PENDING: Final = 64
+
+
+class Admission(ServerCore):
+    """The clock server's accepting, handshake and joining of participants."""
+
+    def _on_accept(self) -> None:
+        for _ in range(16):
+            try:
+                sock, _addr = self._listener.accept()
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # e.g. out of file descriptors: keep serving the others
+                log.warning("clock server: accept failed: %s", exc)
+                return
+            sock.setblocking(False)
+            if sock.family != socket.AF_UNIX:
+                sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            peer = Peer(sock)
+            try:
+                cred = peer_credentials(sock)
+            except OSError as exc:
+                log.warning("clock server: cannot read a connection's credentials: %s", exc)
+                sock.close()
+                continue
+            if cred is not None:
+                peer.pid, uid = cred
+                if uid not in self._peer_uids:
+                    self._refuse(
+                        peer,
+                        f"user id {uid} may not join this clock server (it admits user ids "
+                        f"{', '.join(map(str, self._peer_uids))}; serve with peer_uids=...)",
+                    )
+                    continue
+            if len(self._pending) >= MAX_PENDING:
+                self._refuse(
+                    peer,
+                    f"busy: {MAX_PENDING} connections are in their handshake; try again",
+                    proto.REFUSE_BUSY,
+                )
+                continue
+            self._pending.append(peer)
+            self._loop.add_reader(sock, self._on_readable, peer)
+            # The server holds sim time exactly while a peer's traffic matters (a working
+            # participant): the loop must not also infer held time from its unread bytes
+            # (a follower that reads late must never hold the simulation).
+            self._loop.account_fd(sock.fileno(), True)
+
+    def _transcript(self, peer: Peer) -> bytes:
+        return proto.transcript(
+            proto.VERSION, peer.mode, peer.greeted, peer.client_nonce, peer.server_nonce
+        )
+
+    def _handshake(self, peer: Peer, kind: int, payload: bytes) -> None:
+        """HELLO -> CHALLENGE (the server's proof first), PROOF -> WELCOME or REFUSE."""
+        if not peer.greeted:
+            if kind != proto.HELLO:
+                raise ProtocolError("the first frame must be HELLO")
+            version, mode, name, nonce = proto.parse_hello(payload)
+            if version != proto.VERSION:
+                self._refuse(
+                    peer,
+                    f"protocol version {version} is not supported: this clock server speaks "
+                    f"version {proto.VERSION}; run the same evclock version on both sides",
+                )
+                return
+            peer.greeted, peer.mode, peer.client_nonce = name, mode, nonce
+            peer.server_nonce = proto.new_nonce()
+            token = self._token
+            mine = (
+                b""
+                if token is None
+                else proto.prove(token, proto.SERVER_SIDE, self._transcript(peer))
+            )
+            self._send(peer, proto.challenge(peer.server_nonce, mine))
+            return
+        if kind != proto.PROOF:
+            raise ProtocolError("the second frame must be PROOF")
+        token = self._token
+        if token is not None and not hmac.compare_digest(
+            payload, proto.prove(token, proto.CLIENT_SIDE, self._transcript(peer))
+        ):
+            self._refuse(peer, "wrong or missing token: join with ?token=... in the clock address")
+            return
+        self._on_hello(peer, peer.mode, peer.greeted)
+
+    def _on_hello(self, peer: Peer, mode: int, name: str) -> None:
+        replaced = None
+        for other in self._peers:
+            if other.name == name:
+                if not other.lost:
+                    self._refuse(
+                        peer,
+                        f"a participant named {name!r} is already joined; give this process "
+                        "another name (?name=... in the clock address)",
+                    )
+                    return
+                replaced = other
+        self._pending.remove(peer)
+        now = self._kernel.now_ns
+        peer.name = name
+        peer.mode = mode
+        peer.reader.limit = self._max_frame  # authenticated: the documented frame limit
+        self._send(peer, proto.welcome(now, self._max_frame, self._info))
+        if replaced is not None:
+            # A paused simulation waited for this name: the newcomer takes its place (and
+            # the hold the lost one kept).
+            peer.index = replaced.index
+            self._peers[self._peers.index(replaced)] = peer
+            if replaced.working_at is not None:
+                self._working -= 1
+                if not self._working:
+                    self._release()
+            log.warning("clock server: %s rejoined at %s", peer.describe(), self._now())
+        else:
+            self._joined += 1
+            peer.index = self._joined
+            self._peers.append(peer)
+            log.info("clock server: %s joined at %s", peer.describe(), self._now())
+        if mode == proto.MODE_LOCKSTEP:
+            self._start_work(peer, now)  # its program starts now: the simulation waits
+        else:
+            self._add_step_hook()
+        self._wake_waiters()
+
+    def _refuse(self, peer: Peer, reason: str, code: int = proto.REFUSE_FINAL) -> None:
+        pid = "" if peer.pid is None else f" (pid {peer.pid})"
+        log.warning("clock server: refused a connection%s: %s", pid, reason)
+        with contextlib.suppress(OSError):
+            peer.sock.send(proto.refuse(reason, code))
+        if peer in self._pending:
+            self._pending.remove(peer)
+        self._disconnect(peer)
+
+    def _handshake_late(self, now: float) -> bool:
+        """Whether a pending connection ran out of time (read by the watchdog's thread)."""
+        return any(now - p.accepted_at > HELLO_TIMEOUT for p in list(self._pending))
+
+    def _expire_handshakes(self, now: float) -> None:
+        for peer in list(self._pending):
+            if now - peer.accepted_at > HELLO_TIMEOUT:
+                self._refuse(peer, f"no complete handshake within {HELLO_TIMEOUT:g} s")
