@@ -33,6 +33,9 @@ if str(ROOT) not in sys.path:
     sys.path.append(str(ROOT))
 INSTALLED_ONLY = os.environ.get("EVCLOCK_TEST_INSTALLED") == "1"
 
+#: PyBullet's ``client`` and ``client2`` fixtures, shared by the modules that drive it.
+pytest_plugins = ["_pybullet_fixtures"]
+
 HAVE_PYBULLET = importlib.util.find_spec("pybullet") is not None
 _PYBULLET_WHEELS = sys.version_info < (3, 12)  # as the test extra's marker says
 _SKIP_REASON = "PyBullet is not installed: pip install 'evclock[pybullet]'"

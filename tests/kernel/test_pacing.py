@@ -13,7 +13,7 @@ import asyncio
 import re
 import selectors
 import socket
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable
 from fractions import Fraction
 from typing import Any
 
@@ -22,7 +22,6 @@ import pytest
 # PyBullet has wheels for CPython 3.11 only: elsewhere these tests are skipped (conftest.py
 # makes a missing PyBullet an error on 3.11).
 pytest.importorskip("pybullet", reason="PyBullet is not installed: pip install 'evclock[pybullet]'")
-import pybullet as p
 
 import evclock
 from evclock import SIM, DeadlockError, LagError, NotRunningError, PacingError, SimEventLoop, Time
@@ -73,14 +72,6 @@ class FakeWallSelector(selectors.DefaultSelector):
             self.waits.append(timeout)
             self.wall.now += timeout
         return list(super().select(0))
-
-
-@pytest.fixture
-def client() -> Iterator[int]:
-    cid = p.connect(p.DIRECT)
-    yield cid
-    if p.isConnected(cid):
-        p.disconnect(cid)
 
 
 class Harness:

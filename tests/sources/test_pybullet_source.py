@@ -13,7 +13,7 @@ import re
 import struct
 import subprocess
 import sys
-from collections.abc import Awaitable, Callable, Iterator
+from collections.abc import Awaitable, Callable
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
@@ -55,22 +55,6 @@ def raises_exactly(error: type[BaseException], message: str) -> Any:
 
 def step_time(index: int, step_ns: Fraction = STEP_NS) -> int:
     return math.floor(index * step_ns)
-
-
-@pytest.fixture
-def client() -> Iterator[int]:
-    cid = p.connect(p.DIRECT)
-    yield cid
-    if p.isConnected(cid):
-        p.disconnect(cid)
-
-
-@pytest.fixture
-def client2() -> Iterator[int]:
-    cid = p.connect(p.DIRECT)
-    yield cid
-    if p.isConnected(cid):
-        p.disconnect(cid)
 
 
 def box_world(cid: int, height: float = 1.0) -> tuple[int, int]:
