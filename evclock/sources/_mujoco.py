@@ -63,7 +63,11 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
     **Bad states.** MuJoCo warns (``mjWARN_BADQACC``, ``mjWARN_BADQPOS``, ``mjWARN_BADQVEL``,
     ``mjWARN_BADCTRL``) when the state becomes NaN, infinite or huge, and resets the data. The
     source checks the warning counters after each run of steps and raises
-    :class:`~evclock.PhysicsError` naming the warning, the step and its sim time.
+    :class:`~evclock.PhysicsError` naming the warning, the step and its sim time. The step is
+    counted, never inferred from ``data.time`` (which each reset sets back to zero): a run of
+    steps in which one failed is taken again from its start one step at a time, up to the
+    first failing step, so a run with or without step hooks names the same step and leaves
+    the same data.
 
     **Snapshots** (:meth:`save_state`, :meth:`restore_state`) are ``mj_getState`` /
     ``mj_setState`` of the full integration state, restored as time jumps with the same policy
@@ -127,6 +131,9 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
         # costs a fraction of a microsecond.
         self._warning_numbers: Any = data.warning.number
         self._warnings_seen: bytes = self._warning_numbers.tobytes()
+        import numpy  # a dependency of mujoco's, loaded with it
+
+        self._run_start: Any = numpy.empty(mj.mj_stateSize(model, self._state_kind))
         self._closed = False
         if time_step is not None:
             # Validate and set through the shared code path once the clock exists.
@@ -185,6 +192,9 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
         return self._data
 
     def _step_engine(self, count: int) -> None:
+        if count > 1:
+            # The state before a run of steps, to find which one failed if one does.
+            self._mj.mj_getState(self._model, self._data, self._run_start, self._state_kind)
         self._mj_step(self._model, self._data, count)
         if self._warning_numbers.tobytes() != self._warnings_seen:
             self._check_warnings(count)
@@ -195,30 +205,23 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
         import numpy  # loaded with mujoco
 
         numbers = self._warning_numbers
-        seen = numpy.frombuffer(self._warnings_seen, dtype=numbers.dtype)  # before the steps
+        seen = numpy.frombuffer(self._warnings_seen, dtype=numbers.dtype).copy()  # before
+        if not self._bad_warning_changed(seen):
+            self._warnings_seen = numbers.tobytes()
+            return
+        offset = 0 if count == 1 else self._replay_to_first_failure(seen, count)
         self._warnings_seen = numbers.tobytes()
-        changed = [
+        name = next(
             name
             for name, index in zip(self._warning_names, self._warning_index, strict=True)
-            if numbers[index] != seen[index] and numbers[index] > 0
-        ]
-        if not changed:
-            return
-        name = changed[0]
+            if numbers[index] != seen[index]
+        )
         lastinfo = self._data.warning.lastinfo[self._warning_index[self._warning_names.index(name)]]
         detail = _WHAT_WENT_BAD[name].format(int(lastinfo))
-        first = self._step_index + 1
-        offset = self._failing_step_offset(name, count)
-        if offset is None:
-            where = (
-                f"in one of steps {first}..{first + count - 1} (taken as one mj_step run), "
-                f"from sim time {self._time_after(0)} to {self._time_after(count)}"
-            )
-        else:
-            where = (
-                f"in step {first + offset} (from sim time {self._time_after(offset)} to "
-                f"{self._time_after(offset + 1)})"
-            )
+        where = (
+            f"in step {self._step_index + 1 + offset} (from sim time "
+            f"{self._time_after(offset)} to {self._time_after(offset + 1)})"
+        )
         if name == "mjWARN_BADCTRL":
             what = "MuJoCo zeroed the controls; check the controls set before that step"
         else:
@@ -229,19 +232,26 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
             )
         raise PhysicsError(f"MuJoCo reported {name} {where}: {detail}. {what}")
 
-    def _failing_step_offset(self, name: str, count: int) -> int | None:
-        """Which step of a run of ``count`` failed (0-based), when it can be known."""
-        if count == 1 or name == "mjWARN_BADCTRL":
-            return 0  # a bad control is checked before the first step that uses it
-        mj = self._mj
-        if self._opt.disableflags & int(mj.mjtDisableBit.mjDSBL_AUTORESET):
-            return None
-        # Diagnosis only (never time keeping): MuJoCo reset the data at the failing step,
-        # so data.time counts the steps taken since, itself included.
-        since = round(float(self._data.time) / self._dt)
-        if not 1 <= since <= count:
-            return None
-        return count - since
+    def _bad_warning_changed(self, seen: Any) -> bool:
+        numbers = self._warning_numbers
+        return any(numbers[index] != seen[index] for index in self._warning_index)
+
+    def _replay_to_first_failure(self, seen: Any, count: int) -> int:
+        """Which step of a run of ``count`` failed first (0-based), counted exactly: the run
+        is taken again from its start state one ``mj_step`` at a time up to that step, which
+        leaves the data as stepping one at a time would. (MuJoCo resets the data, ``time``
+        included, at each failure, so the state after the run cannot tell.)"""
+        mj, model, data = self._mj, self._model, self._data
+        mj.mj_setState(model, data, self._run_start, self._state_kind)
+        self._warning_numbers[:] = seen
+        for offset in range(count):
+            self._mj_step(model, data, 1)
+            if self._bad_warning_changed(seen):
+                return offset
+        raise PhysicsError(  # MuJoCo's stepping is deterministic: never expected
+            f"MuJoCo reported a bad state in a run of {count} steps, but not when the run was "
+            "taken again one step at a time; report this to evclock with the model"
+        )
 
     def _time_after(self, steps: int) -> str:
         """The sim time ``steps`` steps after the current one, for messages (``1.5 s``)."""

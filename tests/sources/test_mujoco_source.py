@@ -495,34 +495,67 @@ def test_a_nan_force_in_a_run_of_steps_names_the_failing_step() -> None:
         "the controls and forces applied before that step",
     ):
         run(main, source)
-    assert calls == [240, 240]  # found inside a run of 240 steps
+    assert calls == [240, 240, 1]  # found inside a run of 240 steps: its first step
+
+
+#: A hinge whose spring is far too stiff for explicit Euler at 4 ms: the motion blows up
+#: in step 4, MuJoCo resets the data (time included), and it blows up again, and again.
+UNSTABLE = """
+<mujoco model="unstable">
+  <option timestep="0.004" integrator="Euler"/>
+  <worldbody>
+    <body name="arm">
+      <joint name="hinge" type="hinge" axis="0 1 0" stiffness="1e6" springref="1"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02" mass="1"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
 
 
 @pytest.mark.usefixtures("in_tmp_path")
-def test_a_bad_state_mid_run_names_its_step_within_the_run() -> None:
-    source = pendulum()
+@pytest.mark.parametrize("stepping", ["one run of mj_step", "one step at a time"])
+def test_a_model_that_goes_bad_again_and_again_is_reported_at_its_first_failing_step(
+    stepping: str,
+) -> None:
+    # By hand, one mj_step at a time: the first failure is in step 4...
+    model = mujoco.MjModel.from_xml_string(UNSTABLE)
+    by_hand = mujoco.MjData(model)
+    steps = 0
+    while not by_hand.warning.number.any():
+        mujoco.mj_step(model, by_hand)
+        steps += 1
+    assert steps == 4
+    # ...and a run of 250 steps ends with MuJoCo's time reset by a later failure.
+    whole_run = mujoco.MjData(model)
+    mujoco.mj_step(model, whole_run, 250)
+    assert whole_run.time < 0.1
+
+    source = MuJoCoTimeSource(mujoco.MjModel.from_xml_string(UNSTABLE))
 
     async def main() -> None:
+        if stepping == "one step at a time":
+            source.add_step_hook(lambda: None)
         await evclock.clock().sleep(1.0)
 
-    # An infinite velocity appears after step 99 of a run of 240 (one mj_step call for
-    # evclock): MuJoCo's check finds it at the start of step 100.
-    real = source._mj_step
-
-    def poison_after_99(model: Any, data: Any, nstep: int = 1) -> None:
-        real(model, data, 99)
-        data.qvel[1] = math.inf
-        real(model, data, nstep - 99)
-
-    source._mj_step = poison_after_99
+    calls = count_mj_step_calls(source)
     with raises_exactly(
         PhysicsError,
-        "MuJoCo reported mjWARN_BADQVEL in step 100 (from sim time 0.4125 s to "
-        "0.416666666 s): a NaN, infinite or huge joint velocity (qvel) at DOF 1. The "
-        "simulation is unstable and MuJoCo reset its data; lower the time step, add joint "
-        "damping or armature, or check the controls and forces applied before that step",
+        "MuJoCo reported mjWARN_BADQACC in step 4 (from sim time 0.012 s to 0.016 s): a "
+        "NaN, infinite or huge acceleration (qacc) at DOF 0. The simulation is unstable and "
+        "MuJoCo reset its data; lower the time step, add joint damping or armature, or check "
+        "the controls and forces applied before that step",
     ):
         run(main, source)
+    if stepping == "one run of mj_step":
+        assert calls == [250, 1, 1, 1, 1]  # the run, then again one step at a time to step 4
+    else:
+        assert calls == [1, 1, 1, 1]
+    # Either way the data is left as stepping by hand left it.
+    assert source.data.time == by_hand.time
+    assert source.data.qpos.tolist() == by_hand.qpos.tolist()
+    assert source.data.qvel.tolist() == by_hand.qvel.tolist()
+    assert source.data.warning.number.tolist() == by_hand.warning.number.tolist()
 
 
 @pytest.mark.usefixtures("in_tmp_path")
