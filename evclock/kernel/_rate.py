@@ -80,6 +80,67 @@ def _check_policy(policy: object) -> Policy:
     return policy  # type: ignore[return-value]
 
 
+def last_deadline_index(start_ns: int, now_ns: int, num: int, den: int) -> int:
+    """The index of the last deadline at or before ``now_ns`` of a schedule whose deadline
+    ``i`` is ``start_ns + floor(i x num / den)`` (the period is ``num/den`` ns, exactly).
+
+    :param start_ns: deadline 0, in integer nanoseconds (at or before ``now_ns``).
+    :param now_ns: the time, in integer nanoseconds.
+    :param num: the period's numerator, in nanoseconds.
+    :param den: the period's denominator.
+    :returns: the largest ``i`` with ``start_ns + i * num // den <= now_ns``.
+    """
+    # floor(i*num/den) <= n  <=>  i*num < (n+1)*den  <=>  i <= ((n+1)*den - 1) // num
+    return ((now_ns - start_ns + 1) * den - 1) // num
+
+
+class DeadlineGrid:
+    """The drift-free deadlines of a :class:`Rate` (``start + i x period`` in exact integer
+    nanoseconds) for code that is not a task awaiting them: it asks, at times of its own
+    (each physics step, for the recorder), whether a deadline is due, and serves the last
+    one passed (missed ones are skipped, as ``Rate``'s ``"skip"`` policy does). ``next_ns``
+    is the next deadline not served yet.
+
+    :param period_ns: the period in nanoseconds (an int or an exact ``Fraction``; positive).
+    :raises InvalidArgumentError: the period is not positive.
+    """
+
+    __slots__ = ("_den", "_index", "_num", "_start", "next_ns")
+
+    def __init__(self, period_ns: int | Fraction) -> None:
+        from fractions import Fraction
+
+        period = Fraction(period_ns)
+        if period <= 0:
+            raise InvalidArgumentError(f"a deadline grid needs a positive period, got {period}")
+        self._num = period.numerator
+        self._den = period.denominator
+        self._start = 0
+        self._index = 0
+        self.next_ns = 0
+
+    def start(self, start_ns: int) -> None:
+        """Anchor the grid: deadline 0 is ``start_ns`` (also after a clock jump).
+
+        :param start_ns: the first deadline, in integer nanoseconds.
+        """
+        self._start = self.next_ns = start_ns
+        self._index = 0
+
+    def serve(self, now_ns: int) -> int:
+        """Serve the last deadline at or before ``now_ns`` (call when ``now_ns >=
+        next_ns``); the next one becomes :attr:`next_ns`.
+
+        :param now_ns: the time, in integer nanoseconds.
+        :returns: how many deadlines before it were passed without being served.
+        """
+        passed = last_deadline_index(self._start, now_ns, self._num, self._den)
+        missed = passed - self._index
+        self._index = passed + 1
+        self.next_ns = self._start + self._index * self._num // self._den
+        return missed
+
+
 class Tick:
     """One iteration of a rate loop.
 
@@ -294,7 +355,7 @@ class Rate:
             tick.missed = 0
             tick._clock_type = self._clock_type
             return tick
-        passed = (now - start) * self._den // self._num  # last deadline index <= now
+        passed = last_deadline_index(start, now, self._num, self._den)
         if self._policy == "catch_up":
             return self._tick(index, deadline, now, 0)
         if self._policy == "skip":

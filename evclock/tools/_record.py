@@ -13,7 +13,8 @@ documents for MCAP), stamped with the sim time in integer nanoseconds (``log_tim
   velocities, each joint's position and velocity), sampled periodically.
 - ``/evclock/joints`` (``foxglove.JointStates``), ``/evclock/transforms``
   (``foxglove.FrameTransforms``), ``/evclock/scene`` (``foxglove.SceneUpdate``, once: the
-  robot's shapes and meshes) and ``/evclock/log`` (``foxglove.Log``: the controllers'
+  robot's shapes and meshes; a viewer that subscribes later is sent it again, never the
+  file) and ``/evclock/log`` (``foxglove.Log``: the controllers'
   :mod:`logging` records): what Foxglove's 3D, plot and log panels show.
 - ``/evclock/jump``: every time jump (reset, restored snapshot).
 - any user channel a controller writes with :func:`evclock.tools.record`, with a JSON Schema
@@ -59,7 +60,9 @@ FORMAT_VERSION = 2
 WALL_TIME_TOPICS = frozenset({"/evclock/clock"})
 """Channels whose content depends on wall time: ``trace diff`` does not compare them."""
 SAMPLE_PERIOD_S = 0.05
-"""Sim seconds between two samples of the clock, state, joints and transforms."""
+"""Sim seconds between two samples of the clock, state, joints and transforms: samples are
+due on a drift-free grid (``start + i x 0.05 s``, as a rate loop's deadlines), each taken at
+the first physics step at or after its grid point."""
 _RESERVED_PREFIX = "/evclock/"
 
 _CLOCK_SCHEMA = {
@@ -296,8 +299,9 @@ class Recorder:
         self._scene_sent = False
         self._log_handler: logging.Handler | None = None
         self._seen: dict[str, tuple[int, int]] = {}  # loop name -> (ticks, missed) recorded
-        self._next_sample_ns = 0
-        self._sample_ns = round(SAMPLE_PERIOD_S * 1e9)
+        from evclock.kernel._rate import DeadlineGrid
+
+        self._samples = DeadlineGrid(round(SAMPLE_PERIOD_S * 1e9))
         self._wall0 = time.perf_counter()
         self._last_sample = (0, self._wall0)
         self._closed = False
@@ -332,6 +336,15 @@ class Recorder:
         if self._live is not None:
             self._live.log(topic, channel.schema, channel.metadata, time_ns, payload)
         self._sequence += 1
+
+    def _send_live(self, topic: str, schema: Mapping[str, Any], time_ns: int, data: object) -> None:
+        """Send a message to the live view only: the file (and its sequence numbers) stays
+        what an unwatched run writes."""
+        if self._closed or self._live is None:
+            return
+        channel = self._channel(topic, schema)
+        payload = json.dumps(data, allow_nan=True).encode()
+        self._live.log(topic, channel.schema, channel.metadata, time_ns, payload)
 
     def write_user(
         self, topic: str, message: Mapping[str, Any], message_type: type[Any] | None = None
@@ -395,7 +408,7 @@ class Recorder:
         if world is None and source is not None:
             world = getattr(source, "client", source)  # PyBullet's client, or MuJoCo's source
         self._world = self._read_world(world)
-        self._next_sample_ns = clk.now_ns()
+        self._samples.start(clk.now_ns())
         self._last_sample = (clk.now_ns(), time.perf_counter())
         if source is not None:
             source.add_step_hook(self.observe, when="before")
@@ -444,7 +457,7 @@ class Recorder:
                 "delta_s": jump.delta.seconds,
             },
         )
-        self._next_sample_ns = jump.after.nanoseconds
+        self._samples.start(jump.after.nanoseconds)
 
     def observe(self) -> None:
         """Record the ticks since the last call and, when due, a sample of the clock, the
@@ -474,8 +487,9 @@ class Recorder:
                         },
                     )
                 self._seen[rate.name] = (stats.ticks, stats.missed)
-        if now >= self._next_sample_ns:
-            self._next_sample_ns = now + self._sample_ns
+        samples = self._samples
+        if now >= samples.next_ns:
+            samples.serve(now)
             self._sample(now)
 
     def _sample(self, now: int) -> None:
@@ -515,9 +529,11 @@ class Recorder:
             self._write("/evclock/joints", JOINT_STATES_SCHEMA, now, world.joint_states(now))
             self._write("/evclock/transforms", FRAME_TRANSFORMS_SCHEMA, now, world.transforms(now))
             resend = self._live is not None and self._live.scene_wanted()
-            if not self._scene_sent or resend:
+            if not self._scene_sent:
                 self._scene_sent = True
                 self._write("/evclock/scene", SCENE_UPDATE_SCHEMA, now, world.scene(now))
+            elif resend:  # for a viewer that subscribed late: never into the file
+                self._send_live("/evclock/scene", SCENE_UPDATE_SCHEMA, now, world.scene(now))
         if self._live is not None:
             self._live.tick(now)
 

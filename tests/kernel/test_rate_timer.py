@@ -63,6 +63,52 @@ def test_skip_policy_delivers_one_late_tick_for_the_latest_deadline() -> None:
     ]
 
 
+@pytest.mark.parametrize("policy", ["skip", "catch_up"])
+def test_a_body_that_ends_exactly_on_a_fractional_deadline_gets_that_tick(
+    policy: evclock.kernel._rate.Policy,
+) -> None:
+    """300 Hz: the period is 10/3 ms, deadline 1 is at 3,333,333 ns. A body that runs until
+    exactly the next deadline gets it at once (it was counted as not passed yet: tick 0
+    again, with -1 missed, for ever)."""
+
+    async def main() -> list[tuple[int, int, int, int]]:
+        clock = evclock.clock()
+        out = []
+        async for tick in clock.rate(300, policy=policy):
+            out.append((tick.index, tick.expected_ns, tick.actual_ns, tick.missed))
+            if len(out) == 4:
+                break
+            await clock.sleep_until_ns((tick.index + 1) * 10_000_000 // 3)
+        return out
+
+    assert evclock.run(main()) == [
+        (0, 0, 0, 0),
+        (1, 3_333_333, 3_333_333, 0),
+        (2, 6_666_666, 6_666_666, 0),
+        (3, 10_000_000, 10_000_000, 0),
+    ]
+
+
+def test_a_deadline_grid_serves_the_last_deadline_passed() -> None:
+    from fractions import Fraction
+
+    from evclock.kernel._rate import DeadlineGrid
+
+    grid = DeadlineGrid(Fraction(10_000_000, 3))  # 300 Hz
+    grid.start(1_000)
+    assert grid.next_ns == 1_000
+    assert grid.serve(1_000) == 0
+    assert grid.next_ns == 3_334_333
+    assert grid.serve(3_334_333) == 0  # exactly on deadline 1
+    assert grid.next_ns == 6_667_666
+    assert grid.serve(10_001_000) == 1  # deadline 3, exactly; deadline 2 missed
+    assert grid.next_ns == 13_334_333
+    grid.start(5)  # after a jump
+    assert (grid.next_ns, grid.serve(7)) == (5, 0)
+    with pytest.raises(evclock.InvalidArgumentError, match=r"^a deadline grid needs a positive"):
+        DeadlineGrid(0)
+
+
 def test_catch_up_policy_bursts_every_missed_tick() -> None:
     assert _overrun("catch_up") == [
         (0, 0, 0, 0),

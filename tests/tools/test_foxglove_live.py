@@ -180,3 +180,82 @@ def _watch(proc: subprocess.Popen[str], client: Client) -> int:
         client.until(lambda: False)
     assert proc.wait(timeout=WAIT_S) == 0
     return client.times[-1]
+
+
+def _evclock(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "evclock", *args],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        timeout=300,
+        check=False,
+    )
+
+
+@pytest.mark.pybullet
+@needs_live
+def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path) -> None:
+    """A viewer subscribing to the scene mid-run is sent it again, live only: the recording
+    of the watched run is the unwatched one's, bit for bit (and holds the scene once)."""
+    from mcap.reader import make_reader
+    from websockets.exceptions import ConnectionClosedOK
+    from websockets.sync.client import connect
+
+    run = ["run", "kuka", "--seed", "3", "--until", "2", "--quiet"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "evclock", *run, "--record", "watched.mcap",
+         "--foxglove", "--foxglove-addr", "127.0.0.1:0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+    )  # fmt: skip
+    try:
+        assert proc.stderr is not None
+        line = proc.stderr.readline()
+        match = re.search(r"live view at (ws://127\.0\.0\.1:\d+)", line)
+        assert match is not None, line + proc.stderr.read()
+        with connect(match.group(1), subprotocols=[SUBPROTOCOL], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
+            client = Client(ws)
+            client.until(lambda: "/evclock/scene" in client.channels())
+            scene = client.channels()["/evclock/scene"]["id"]
+            subscribe = json.dumps(
+                {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": scene}]}
+            )
+            client.ws.send(subscribe)
+            refused: list[str] = []
+
+            def scene_received() -> bool:
+                # foxglove-sdk 0.30 at times answers a subscription to a channel it has just
+                # advertised with "Unknown channel ID": subscribe again (a bounded number
+                # of times) on each such answer.
+                statuses = [op["message"] for op in client.ops.get("status", [])]
+                if len(statuses) > len(refused):
+                    assert all(m.startswith("Unknown channel ID") for m in statuses), statuses
+                    assert len(statuses) < 20, (statuses, client.channels().keys())
+                    refused[:] = statuses
+                    client.ws.send(subscribe)
+                return any(s == 7 for s, _, _ in client.data)
+
+            client.until(scene_received)
+            sent = [(t, m) for s, t, m in client.data if s == 7]
+            assert sent[0][0] > 0  # sent again after the start, to this viewer
+            assert sent[0][1]["entities"]
+            with pytest.raises(ConnectionClosedOK):
+                client.until(lambda: False)
+        watched = proc.wait(timeout=WAIT_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.communicate(timeout=WAIT_S)
+    plain = _evclock(*run, "--record", "plain.mcap", cwd=tmp_path)
+    # 2 s is too short for the mission: both runs end at the limit (exit status 3).
+    assert (watched, plain.returncode) == (3, 3), plain.stderr
+    with (tmp_path / "watched.mcap").open("rb") as f:
+        scenes = [
+            m.log_time for _, c, m in make_reader(f).iter_messages() if c.topic == "/evclock/scene"
+        ]
+    assert scenes == [0]
+    diff = _evclock("trace", "diff", "watched.mcap", "plain.mcap", cwd=tmp_path)
+    assert diff.returncode == 0, diff.stdout + diff.stderr
