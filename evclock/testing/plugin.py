@@ -18,6 +18,9 @@ Who runs an opted-in ``async def`` test:
 * **evclock itself** otherwise: a fresh simulation loop per test, shared by the test's async
   fixtures (which must then be function-scoped).
 
+An ``async def`` test that none of them runs fails with pytest's own message, to which evclock
+adds how to opt in (there is no ``asyncio_mode = auto``-style option: each test opts in).
+
 Each test is handled by exactly one of them, and ``@pytest.mark.evclock(...)`` is the single place
 for per-test options whichever runs it: ``rtf``, ``start``, ``stall_timeout``, ``wall_timeout``
 (a wall-clock budget for setup, call and teardown) and ``sim_timeout`` (a sim-time limit for the
@@ -112,6 +115,34 @@ class _AsyncioHooks:
         return self._session.asyncio_factories(item, result)
 
 
+#: How pytest's own message for an ``async def`` test no plugin ran begins (``async_fail``
+#: in ``_pytest/python.py``, pytest 8 and 9).
+_PYTEST_UNHANDLED_ASYNC = "async def functions are not natively supported"
+_UNHANDLED_ASYNC_HINT = (
+    "evclock: to run this test on simulation time, mark it @pytest.mark.evclock (or a whole "
+    "module with pytestmark = pytest.mark.evclock), or request the evclock_clock or "
+    "evclock_loop fixture; evclock has no ini option that runs every async test (an "
+    "asyncio_mode = auto): each one opts in"
+)
+
+
+class _UnhandledAsyncHint:
+    """Adds to pytest's failure of an ``async def`` test that no plugin ran (neither
+    evclock, pytest-asyncio nor anyio) how to run it with evclock. A test another plugin
+    runs, and any other failure, is left as it is."""
+
+    @pytest.hookimpl(wrapper=True)
+    def pytest_pyfunc_call(self, pyfuncitem: pytest.Function) -> Generator[None, object, object]:
+        try:
+            return (yield)
+        except pytest.fail.Exception as exc:
+            if state_of(pyfuncitem) is None and str(exc.msg).startswith(_PYTEST_UNHANDLED_ASYNC):
+                raise pytest.fail.Exception(
+                    f"{exc.msg}\n{_UNHANDLED_ASYNC_HINT}", pytrace=False
+                ) from None
+            raise
+
+
 def pytest_addoption(parser: pytest.Parser) -> None:
     """Register evclock's command-line options and ini keys."""
     group = parser.getgroup("evclock", "evclock: simulation time for asyncio tests")
@@ -162,6 +193,7 @@ def pytest_configure(config: pytest.Config) -> None:
     )
     session = Session(config)
     config.stash[SESSION] = session
+    config.pluginmanager.register(_UnhandledAsyncHint(), "evclock-async-hint")
     timeout_hook = getattr(config.hook, "pytest_timeout_set_timer", None)
     if timeout_hook is not None and timeout_hook.has_spec():
         config.pluginmanager.register(PytestTimeoutHooks(), "evclock-timeout")

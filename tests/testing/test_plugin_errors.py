@@ -217,6 +217,59 @@ def test_evclock_loop_requested_by_a_test_that_is_not_an_evclock_test(
     )
 
 
+UNMARKED_ASYNC_TEST = """
+import pytest
+
+async def test_unmarked():
+    assert True
+
+@pytest.mark.anyio
+async def test_anyio_runs_it():
+    assert True
+"""
+PYTEST_OWN_MESSAGE = "*async def functions are not natively supported.*"
+EVCLOCK_HINT = (
+    "*evclock: to run this test on simulation time, mark it @pytest.mark.evclock (or a whole "
+    "module with pytestmark = pytest.mark.evclock), or request the evclock_clock or "
+    "evclock_loop fixture; evclock has no ini option that runs every async test (an "
+    "asyncio_mode = auto): each one opts in*"
+)
+
+
+@pytest.mark.parametrize(
+    "plugins",
+    [("-p", "no:asyncio"), ()],
+    ids=["without pytest-asyncio", "pytest-asyncio strict"],
+)
+def test_an_async_test_no_plugin_runs_fails_with_how_to_run_it_on_evclock(
+    pytester: pytest.Pytester, plugins: tuple[str, ...]
+) -> None:
+    if plugins:
+        pytester.makeini(INNER_INI)
+        pytester.makepyfile(UNMARKED_ASYNC_TEST)
+        result = pytester.runpytest(
+            "-p", "no:cacheprovider", "-p", "no:hypothesispytest", *plugins, "-rf"
+        )  # fmt: skip
+    else:
+        result = run_inner(pytester, UNMARKED_ASYNC_TEST, "-rf")
+    result.assert_outcomes(passed=1, failed=1)  # anyio ran its test
+    result.stdout.fnmatch_lines([PYTEST_OWN_MESSAGE, EVCLOCK_HINT])
+
+
+def test_other_plugins_keep_the_async_tests_they_run_and_without_evclock_no_hint(
+    pytester: pytest.Pytester,
+) -> None:
+    auto = run_inner(pytester, UNMARKED_ASYNC_TEST, "-o", "asyncio_mode=auto")
+    auto.assert_outcomes(passed=2)  # pytest-asyncio runs the unmarked one
+    without = pytester.runpytest_subprocess(
+        "-p", "no:cacheprovider", "-p", "no:hypothesispytest", "-p", "no:asyncio",
+        "-p", "no:evclock", "-rf",
+    )  # fmt: skip
+    without.assert_outcomes(passed=1, failed=1)
+    without.stdout.fnmatch_lines([PYTEST_OWN_MESSAGE])
+    assert "evclock:" not in without.stdout.str()
+
+
 def test_anyio_with_another_backend_than_asyncio(pytester: pytest.Pytester) -> None:
     result = run_inner(
         pytester,
