@@ -135,3 +135,21 @@ def test_the_command_page_lists_every_option_of_the_help(path: str) -> None:
             assert option in options, f"{path}: the page lists {option}, which the help does not"
     if long_options - {"--help"}:
         assert table, f"{path}: no options table"
+
+
+def _extras_table(page: Path) -> dict[str, str]:
+    """The extras table under a page's "## Extras" heading: extra -> what it installs."""
+    text = page.read_text(encoding="utf-8").split("## Extras", 1)[1]
+    rows = re.findall(r"^\| `([\w-]+)` \| ([^|]+) \|", text.split("\n## ", 1)[0], re.M)
+    return {extra: installs.strip() for extra, installs in rows}
+
+
+def test_the_extras_tables_of_the_readme_and_getting_started_agree_with_pyproject() -> None:
+    import tomllib
+
+    with (ROOT / "pyproject.toml").open("rb") as f:
+        extras = list(tomllib.load(f)["project"]["optional-dependencies"])
+    readme = _extras_table(README)
+    getting_started = _extras_table(DOCS / "guides" / "getting-started.md")
+    assert sorted(readme) == sorted(extras)
+    assert readme == getting_started

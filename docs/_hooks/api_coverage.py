@@ -35,6 +35,11 @@ PUBLIC_MODULES = (
     "evclock.testing.plugin",
 )
 
+#: The bundled scenarios' package (installed with evclock, not under it): its API page
+#: documents what a scenario author uses; each ``::: evclock_sims.NAME`` must be in its
+#: ``__all__`` and, where defined in its source, have a docstring.
+SCENARIO_PACKAGE = "evclock_sims"
+
 DIRECTIVE = re.compile(r"^:::[ \t]+([\w.]+)[ \t]*$", re.M)
 
 
@@ -135,7 +140,14 @@ def problems(docs_dir: Path) -> list[str]:
                     f"{module}.{name} is missing from the API reference: add "
                     f"'::: {module}.{name}' to a page of docs/api/"
                 )
+    scenario_names = set(importlib.import_module(SCENARIO_PACKAGE).__all__)
     for path, page in documented.items():
+        package, _, name = path.rpartition(".")
+        if package == SCENARIO_PACKAGE and name in scenario_names:
+            where, doc = docstring_of(package, name)
+            if not (doc and doc.strip()):
+                found.append(f"{path} has no docstring (it is defined in {where})")
+            continue
         if path not in public_paths:
             found.append(f"docs/api/{page}: '::: {path}' is not a public name of evclock")
     return found
