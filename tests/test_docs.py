@@ -153,3 +153,33 @@ def test_the_extras_tables_of_the_readme_and_getting_started_agree_with_pyprojec
     getting_started = _extras_table(DOCS / "guides" / "getting-started.md")
     assert sorted(readme) == sorted(extras)
     assert readme == getting_started
+
+
+def _pages() -> list[Path]:
+    return [README, *sorted(DOCS.rglob("*.md"))]
+
+
+def test_no_page_says_an_option_mujoco_runs_with_is_pybullet_s_alone() -> None:
+    """The engines table says which options MuJoCo runs lack (its "no" rows); a page that
+    calls options PyBullet's alone names only those (``--record`` on split runs was said to
+    stay PyBullet's after MuJoCo recorded them)."""
+    table = _section((DOCS / "guides" / "engines.md").read_text(), "| | PyBullet (default)")
+    rows = [line.split("|") for line in table.splitlines() if line.startswith("| ")]
+    pybullet_only = {
+        option
+        for row in rows
+        if len(row) > 3 and row[3].strip().startswith("no")
+        for option in re.findall(r"--[a-z][\w-]*", row[1])
+    }
+    assert pybullet_only == {"--gui"}
+    claim = re.compile(r"(stays?|remains?) PyBullet's|PyBullet[- ]only|only on PyBullet")
+    wrong = []
+    for page in _pages():
+        if page.name == "changelog.md":
+            continue
+        for clause in re.split(r"[;.:]\s|\n\n|\n\|", page.read_text(encoding="utf-8")):
+            if claim.search(clause):
+                options = set(re.findall(r"`(--[a-z][\w-]*)", clause))
+                if options - pybullet_only:
+                    wrong.append(f"{page.relative_to(ROOT)}: {' '.join(clause.split())}")
+    assert not wrong, wrong
