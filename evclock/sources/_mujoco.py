@@ -67,7 +67,9 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
     counted, never inferred from ``data.time`` (which each reset sets back to zero): a run of
     steps in which one failed is taken again from its start one step at a time, up to the
     first failing step, so a run with or without step hooks names the same step and leaves
-    the same data.
+    the same data. The source owns the counters of these four warnings: it zeroes them when
+    it takes the data over, once it has reported one, and at each reset or restore (MuJoCo's
+    counter reads 1 after every failure, so one left at 1 would hide the next).
 
     **Snapshots** (:meth:`save_state`, :meth:`restore_state`) are ``mj_getState`` /
     ``mj_setState`` of the full integration state, restored as time jumps with the same policy
@@ -130,7 +132,8 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
         # A view of MuJoCo's warning counters: comparing its bytes after each run of steps
         # costs a fraction of a microsecond.
         self._warning_numbers: Any = data.warning.number
-        self._warnings_seen: bytes = self._warning_numbers.tobytes()
+        self._warnings_seen = b""
+        self._clear_bad_state_warnings()
         import numpy  # a dependency of mujoco's, loaded with it
 
         self._run_start: Any = numpy.empty(mj.mj_stateSize(model, self._state_kind))
@@ -210,13 +213,13 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
             self._warnings_seen = numbers.tobytes()
             return
         offset = 0 if count == 1 else self._replay_to_first_failure(seen, count)
-        self._warnings_seen = numbers.tobytes()
         name = next(
             name
             for name, index in zip(self._warning_names, self._warning_index, strict=True)
             if numbers[index] != seen[index]
         )
         lastinfo = self._data.warning.lastinfo[self._warning_index[self._warning_names.index(name)]]
+        self._clear_bad_state_warnings()
         detail = _WHAT_WENT_BAD[name].format(int(lastinfo))
         where = (
             f"in step {self._step_index + 1 + offset} (from sim time "
@@ -231,6 +234,19 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
                 "that step"
             )
         raise PhysicsError(f"MuJoCo reported {name} {where}: {detail}. {what}")
+
+    def _clear_bad_state_warnings(self) -> None:
+        """Zero MuJoCo's counters of the bad-state warnings, and take the counters as seen.
+
+        MuJoCo resets the data at a bad state and then counts the warning, so its counter
+        reads 1 after every failure: a counter that already reads 1 would not change at the
+        next one. The source owns these counters from the start, after each failure it
+        reports and after each reset or restore, so that every failure changes one.
+        """
+        numbers = self._warning_numbers
+        for index in self._warning_index:
+            numbers[index] = 0
+        self._warnings_seen = numbers.tobytes()
 
     def _bad_warning_changed(self, seen: Any) -> bool:
         numbers = self._warning_numbers
@@ -310,7 +326,7 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
         else:
             mj.mj_resetDataKeyframe(model, data, self._keyframe_index(keyframe))
         mj.mj_forward(model, data)
-        self._warnings_seen = self._warning_numbers.tobytes()
+        self._clear_bad_state_warnings()
         jump = self._move_time(new_ns, 0)
         self._sync_time_step()
         return jump
@@ -347,7 +363,7 @@ class MuJoCoTimeSource(SteppingTimeSource[Any]):
         # Positions and velocities are back; recompute what derives from them (body poses,
         # sensors) so that controllers read the restored world before the next step.
         mj.mj_forward(self._model, self._data)
-        self._warnings_seen = self._warning_numbers.tobytes()
+        self._clear_bad_state_warnings()
 
     def save_state(self) -> int:
         """Snapshot the data (``mj_getState`` of the full integration state) with the

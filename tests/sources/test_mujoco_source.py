@@ -555,7 +555,36 @@ def test_a_model_that_goes_bad_again_and_again_is_reported_at_its_first_failing_
     assert source.data.time == by_hand.time
     assert source.data.qpos.tolist() == by_hand.qpos.tolist()
     assert source.data.qvel.tolist() == by_hand.qvel.tolist()
-    assert source.data.warning.number.tolist() == by_hand.warning.number.tolist()
+    # The bad-state counters, once reported, are zeroed (every failure must show again).
+    assert by_hand.warning.number[mujoco.mjtWarning.mjWARN_BADQACC] == 1
+    assert not source.data.warning.number.any()
+
+
+@pytest.mark.usefixtures("in_tmp_path")
+@pytest.mark.parametrize("before", ["stepped by hand until it failed", "a source reported it"])
+def test_a_failure_is_seen_in_data_that_failed_before(before: str) -> None:
+    # MuJoCo's counter of a bad-state warning reads 1 after every failure: a source taking
+    # over data that failed before (stepped by hand, or under a source that reported it)
+    # must still see the next failure.
+    model = mujoco.MjModel.from_xml_string(UNSTABLE)
+    data = mujoco.MjData(model)
+
+    async def until_it_fails() -> None:
+        await evclock.clock().sleep(1.0)
+
+    if before == "stepped by hand until it failed":
+        mujoco.mj_step(model, data, 4)  # fails in step 4: MuJoCo resets, counts 1
+    else:
+        with pytest.raises(PhysicsError):
+            run(until_it_fails, MuJoCoTimeSource(model, data))
+    with raises_exactly(
+        PhysicsError,
+        "MuJoCo reported mjWARN_BADQACC in step 3 (from sim time 0.008 s to 0.012 s): a NaN, "
+        "infinite or huge acceleration (qacc) at DOF 0. The simulation is unstable and MuJoCo "
+        "reset its data; lower the time step, add joint damping or armature, or check the "
+        "controls and forces applied before that step",
+    ):
+        run(until_it_fails, MuJoCoTimeSource(model, data))
 
 
 @pytest.mark.usefixtures("in_tmp_path")
