@@ -20,6 +20,8 @@ EXTRA_OF_MODULE = {
     "ray": "ray",
     "zenoh": "ros2",
     "xxhash": "ros2",
+    "cyclonedds": "ros2",
+    "rosbags": "ros2",
 }
 
 

@@ -15,6 +15,12 @@ import typer
 
 from evclock._errors import InvalidArgumentError
 from evclock.ros2._publisher import Ros2ClockPublisher
+from evclock.ros2._rmw import (
+    ENV_RMW_IMPLEMENTATION,
+    MIDDLEWARES,
+    Middleware,
+    resolve_middleware,
+)
 from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN, check_endpoints
 from evclock.ros2._wire import (
     DEFAULT_WIRE_FORMAT as DEFAULT_WIRE_FORMAT,  # the --ros2-wire-format default
@@ -34,7 +40,15 @@ Ros2ClockFlag = Annotated[
     bool,
     typer.Option(
         "--ros2-clock",
-        help="Publish sim time as ROS 2 /clock over Zenoh (rmw_zenoh format; ros2 extra).",
+        help="Publish sim time as ROS 2 /clock over DDS or Zenoh (see --rmw; ros2 extra).",
+    ),
+]
+Rmw = Annotated[
+    str | None,
+    typer.Option(
+        "--rmw",
+        help=f"ROS 2 middleware: {' or '.join(MIDDLEWARES)} (default: from "
+        f"${ENV_RMW_IMPLEMENTATION}, else dds).",
     ),
 ]
 RosDomainId = Annotated[
@@ -78,19 +92,34 @@ class Ros2ClockOptions:
     domain_id: int
     decimation: int
     wire_format: str
-    connect: tuple[str, ...]
-    listen: tuple[str, ...]
+    connect: tuple[str, ...] | None
+    listen: tuple[str, ...] | None
+    middleware: Middleware = "dds"
 
     @property
     def key_expr(self) -> str:
         return clock_key_expr(self.domain_id, "/clock", wire_format(self.wire_format))
 
+    @property
+    def extras(self) -> tuple[str, ...]:
+        """The modules the chosen middleware needs (checked before any run)."""
+        if self.middleware == "dds":
+            return ("cyclonedds", "rosbags")
+        return ("zenoh", "xxhash")
+
     def describe(self) -> str:
         every = "every step" if self.decimation == 1 else f"every {self.decimation} steps"
+        if self.middleware == "dds":
+            return (
+                f"publishing /clock {every} over DDS on rt/clock in domain {self.domain_id} "
+                f"({self.wire_format} wire format)"
+            )
+        connect = self.connect or ()
+        listen = self.listen or ()
         return (
             f"publishing /clock {every} on {self.key_expr} ({self.wire_format} wire format), "
-            f"connecting to {', '.join(self.connect) or 'nothing'}, listening on "
-            f"{', '.join(self.listen) or 'nothing'}"
+            f"connecting to {', '.join(connect) or 'nothing'}, listening on "
+            f"{', '.join(listen) or 'nothing'}"
         )
 
 
@@ -101,6 +130,7 @@ def options_from_cli(
     wire: str,
     connect: list[str] | None,
     listen: list[str] | None,
+    rmw: str | None = None,
 ) -> Ros2ClockOptions | None:
     """Validate the options; None when ``--ros2-clock`` is off (then the others are errors)."""
     if not enabled:
@@ -112,6 +142,7 @@ def options_from_cli(
                 ("--ros2-wire-format", wire, DEFAULT_WIRE_FORMAT),
                 ("--ros2-connect", connect, None),
                 ("--ros2-listen", listen, None),
+                ("--rmw", rmw, None),
             )
             if value != default
         ]
@@ -122,12 +153,28 @@ def options_from_cli(
         raise InvalidArgumentError(
             f"--ros2-clock-decimation must be >= 1 (1 = every step), got {decimation}"
         )
+    middleware = resolve_middleware(rmw)
+    if middleware == "dds":
+        if connect is not None or listen is not None:
+            raise InvalidArgumentError(
+                "--ros2-connect and --ros2-listen name Zenoh endpoints, but the middleware is "
+                "DDS; add --rmw zenoh, or configure DDS discovery with CYCLONEDDS_URI"
+            )
+        return Ros2ClockOptions(
+            domain_id=resolve_domain_id(domain_id),
+            decimation=decimation,
+            wire_format=wire_format(wire).name,
+            connect=None,
+            listen=None,
+            middleware="dds",
+        )
     return Ros2ClockOptions(
         domain_id=resolve_domain_id(domain_id),
         decimation=decimation,
         wire_format=wire_format(wire).name,
         connect=check_endpoints(DEFAULT_CONNECT if connect is None else connect, "--ros2-connect"),
         listen=check_endpoints(DEFAULT_LISTEN if listen is None else listen, "--ros2-listen"),
+        middleware="zenoh",
     )
 
 
@@ -143,6 +190,7 @@ def publishing(
     with Ros2ClockPublisher(
         domain_id=options.domain_id,
         wire_format=options.wire_format,
+        rmw=options.middleware,
         connect=options.connect,
         listen=options.listen,
     ) as publisher:

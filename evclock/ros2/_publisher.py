@@ -1,7 +1,8 @@
-"""Publishing evclock's sim time as ROS 2 ``/clock`` over Zenoh, as an rmw_zenoh node would."""
+"""Publishing evclock's sim time as ROS 2 ``/clock`` over DDS or Zenoh, as a ROS 2 node would."""
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Sequence
 from types import TracebackType
@@ -13,6 +14,7 @@ from evclock._errors import (
     InvalidTypeError,
     LoopClosedError,
 )
+from evclock.ros2._rmw import Middleware, resolve_middleware
 from evclock.ros2._session import (
     DEFAULT_CONNECT,
     DEFAULT_LISTEN,
@@ -21,6 +23,7 @@ from evclock.ros2._session import (
     require,
 )
 from evclock.ros2._wire import (
+    CLOCK_TYPE,
     DEFAULT_WIRE_FORMAT,
     WireFormat,
     check_node_name,
@@ -37,24 +40,37 @@ from evclock.ros2._wire import wire_format as lookup_wire_format
 from evclock.time._time import SIM, Time
 
 if TYPE_CHECKING:
+    from evclock.ros2._dds import DdsNode
     from evclock.sources import PyBulletTimeSource, StepHook
+
+logger = logging.getLogger("evclock.ros2")
 
 _NODE_ID = 0
 _PUBLISHER_ID = 1
 
 
 class Ros2ClockPublisher:
-    """A ROS 2 node publishing ``rosgraph_msgs/msg/Clock`` on ``topic`` through Zenoh.
+    """A ROS 2 node publishing ``rosgraph_msgs/msg/Clock`` on ``topic`` over DDS or Zenoh.
 
-    It speaks rmw_zenoh's wire format (``wire_format``, default ``"jazzy"``: see
-    :data:`evclock.ros2.WIRE_FORMATS`), so ROS 2 nodes on rmw_zenoh with ``use_sim_time``
-    follow it, and declares the liveliness tokens of a node ``node_name`` and of its
-    publisher, so ``ros2 node list`` / ``ros2 topic list`` / ``ros2 topic echo /clock`` see it.
+    ``rmw`` chooses the middleware as a ROS node does (``"dds"`` or ``"zenoh"``; default:
+    from ``RMW_IMPLEMENTATION``, DDS when unset). ``wire_format`` names the distribution
+    spoken (default ``"jazzy"``, also Kilted's and Rolling's; ``"humble"``: see
+    :data:`evclock.ros2.WIRE_FORMATS`).
 
-    The session is a Zenoh peer that connects to ``connect`` (default: rmw_zenoh's router on
-    ``tcp/127.0.0.1:7447``) and accepts peers on ``listen``; multicast scouting is off.
-    ``domain_id`` defaults to ``ROS_DOMAIN_ID`` (else 0), as in ROS. ``wall_clock_ns`` gives
-    the attachments' source timestamps (wall-clock ns since the epoch, as rmw_zenoh sends).
+    **DDS**: a Cyclone DDS participant (configured by ``CYCLONEDDS_URI`` as under ROS) writes
+    ``rt/clock`` with rclcpp's ClockQoS (best effort, volatile, keep last 1) and announces the
+    node ``node_name`` and its publisher on ``ros_discovery_info``, so nodes on any DDS rmw
+    (Fast DDS, Cyclone DDS, Connext) with ``use_sim_time`` follow it and ``ros2 node list``
+    shows it. A subscription asking for a QoS the publisher cannot offer (a reliable one) is
+    reported by :meth:`diagnostics` and logged.
+
+    **Zenoh**: rmw_zenoh's wire format, with the liveliness tokens of the node and its
+    publisher. The session is a Zenoh peer that connects to ``connect`` (default: rmw_zenoh's
+    router on ``tcp/127.0.0.1:7447``) and accepts peers on ``listen``; multicast scouting is
+    off. ``wall_clock_ns`` gives the attachments' source timestamps (wall-clock ns since the
+    epoch, as rmw_zenoh sends). ``connect``/``listen`` on DDS are an error.
+
+    ``domain_id`` defaults to ``ROS_DOMAIN_ID`` (else 0), as in ROS.
 
     Publish with :meth:`publish`, every physics step with :meth:`attach`, or at a sim-time
     rate with :meth:`run`. Close it (or use it as a context manager) to withdraw it from the
@@ -68,23 +84,48 @@ class Ros2ClockPublisher:
         topic: str = "/clock",
         node_name: str = "evclock_clock",
         wire_format: str | WireFormat = DEFAULT_WIRE_FORMAT,
-        connect: Sequence[str] = DEFAULT_CONNECT,
-        listen: Sequence[str] = DEFAULT_LISTEN,
+        rmw: str | None = None,
+        connect: Sequence[str] | None = None,
+        listen: Sequence[str] | None = None,
         wall_clock_ns: Callable[[], int] = time.time_ns,
     ) -> None:
         self._domain_id = resolve_domain_id(domain_id)
         self._topic = resolve_topic(topic)
         self._node_name = check_node_name(node_name)
         self._wire = lookup_wire_format(wire_format)
-        connect = check_endpoints(connect, "connect")
-        listen = check_endpoints(listen, "listen")
+        self._middleware: Middleware = resolve_middleware(rmw)
         if not callable(wall_clock_ns):
             raise InvalidTypeError("wall_clock_ns must be a callable returning wall-clock ns")
         self._wall_clock_ns = wall_clock_ns
+        self._sequence_number = 0
+        self._closed = False
+        self._dds: DdsNode | None = None
+        if self._middleware == "dds":
+            self._open_dds(connect, listen)
+        else:
+            self._open_zenoh(
+                check_endpoints(DEFAULT_CONNECT if connect is None else connect, "connect"),
+                check_endpoints(DEFAULT_LISTEN if listen is None else listen, "listen"),
+            )
+
+    def _open_dds(self, connect: object, listen: object) -> None:
+        from evclock.ros2._dds import CLOCK_PUBLISHER_QOS, DdsNode, check_no_zenoh_endpoints
+
+        check_no_zenoh_endpoints(connect, listen)
+        node = DdsNode(self._domain_id, self._node_name, self._wire)
+        try:
+            self._writer = node.writer(self._topic, CLOCK_TYPE, CLOCK_PUBLISHER_QOS)
+        except BaseException:
+            node.close()
+            raise
+        self._dds = node
+        self._gid = self._writer.gid
+        self._incompatible_reported: str | None = None
+
+    def _open_zenoh(self, connect: Sequence[str], listen: Sequence[str]) -> None:
         self._key_expr = clock_key_expr(self._domain_id, self._topic, self._wire)
         zenoh = require("zenoh")
         self._session: Any = open_session(connect, listen)
-        self._closed = False
         try:
             zid = str(self._session.zid())
             self._tokens = (
@@ -113,7 +154,6 @@ class Ros2ClockPublisher:
         except BaseException:
             self._session.close()
             raise
-        self._sequence_number = 0
 
     # ------------------------------------------------------------------ facts
 
@@ -129,23 +169,45 @@ class Ros2ClockPublisher:
 
     @property
     def wire_format(self) -> WireFormat:
-        """The rmw_zenoh wire variant spoken."""
+        """The distribution's wire variant spoken."""
         return self._wire
 
     @property
+    def middleware(self) -> Middleware:
+        """The middleware spoken: ``"dds"`` or ``"zenoh"``."""
+        return self._middleware
+
+    @property
     def key_expr(self) -> str:
-        """The Zenoh key expression the samples are put on."""
+        """The Zenoh key expression the samples are put on (Zenoh only)."""
+        self._zenoh_only("key_expr")
         return self._key_expr
 
     @property
     def liveliness_tokens(self) -> tuple[str, ...]:
-        """The declared liveliness tokens: the node's, then the publisher's."""
+        """The declared liveliness tokens: the node's, then the publisher's (Zenoh only)."""
+        self._zenoh_only("liveliness_tokens")
         return self._tokens
 
     @property
     def gid(self) -> bytes:
-        """The publisher's 16-byte GID (sent in every attachment)."""
+        """The publisher's GID: on Zenoh the 16 bytes sent in every attachment, on DDS the
+        writer's GUID as ``ros_discovery_info`` announces it (24 bytes on Humble)."""
         return self._gid
+
+    def diagnostics(self) -> list[str]:
+        """What went wrong with subscriptions so far, for people: on DDS, subscriptions whose
+        requested QoS this publisher cannot offer (a reliable ``/clock`` subscription, say)."""
+        if self._dds is None or self._closed:
+            return []
+        problem = self._writer.incompatible()
+        return [] if problem is None else [problem]
+
+    def _zenoh_only(self, what: str) -> None:
+        if self._middleware != "zenoh":
+            raise InvalidArgumentError(
+                f"{what} is a Zenoh fact; this publisher speaks {self._middleware.upper()}"
+            )
 
     @property
     def sequence_number(self) -> int:
@@ -178,10 +240,21 @@ class Ros2ClockPublisher:
             )
         payload = encode_clock(time_ns)
         self._sequence_number += 1
+        if self._dds is not None:
+            self._writer.write(payload)
+            if self._sequence_number & 0x3FF == 1:  # now and then: a status read is a C call
+                self._report_incompatible()
+            return
         attachment = encode_attachment(
             self._sequence_number, self._wall_clock_ns(), self._gid, self._wire
         )
         self._publisher.put(payload, attachment=attachment)
+
+    def _report_incompatible(self) -> None:
+        problem = self._writer.incompatible()
+        if problem is not None and problem != self._incompatible_reported:
+            self._incompatible_reported = problem
+            logger.warning("%s", problem)
 
     def attach(self, source: PyBulletTimeSource, *, decimation: int = 1) -> StepHook:
         """Publish ``source``'s time now and after every ``decimation``-th physics step.
@@ -223,6 +296,10 @@ class Ros2ClockPublisher:
         if self._closed:
             return
         self._closed = True
+        if self._dds is not None:
+            self._report_incompatible()
+            self._dds.close()
+            return
         try:
             for token in self._declared:
                 token.undeclare()
@@ -243,7 +320,8 @@ class Ros2ClockPublisher:
 
     def __repr__(self) -> str:
         state = "closed" if self._closed else f"seq {self._sequence_number}"
-        return f"<Ros2ClockPublisher {self._key_expr} ({self._wire.name}) {state}>"
+        where = "rt" + self._topic if self._dds is not None else self._key_expr
+        return f"<Ros2ClockPublisher {self._middleware} {where} ({self._wire.name}) {state}>"
 
 
 def _check_decimation(decimation: object) -> int:

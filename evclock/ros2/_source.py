@@ -1,11 +1,11 @@
-"""Following a ROS 2 ``/clock`` over Zenoh: an external time source for the simulation loop.
+"""Following a ROS 2 ``/clock`` over DDS or Zenoh: an external time source for the simulation loop.
 
 A controller launched with ``EVCLOCK_CLOCK=ros2:///clock`` (or ``clock=``) runs on the time
 of a ROS 2 simulator (Gazebo through ``ros_gz_bridge``, or an evclock simulation publishing
 ``/clock``) as an rclpy node with ``use_sim_time`` would: sleeps, rates, timers and asyncio
 timeouts follow it.
 
-How it fits the loop (the external-source contract): a daemon thread reads Zenoh samples into
+How it fits the loop (the external-source contract): a daemon thread reads samples into
 an inbox and wakes the loop with ``call_soon_threadsafe``; on the loop thread, ``advance()``
 reads the inbox and moves time toward the newest ``/clock`` value, never past the loop's next
 deadline, or returns the time unchanged - "waiting for the outside" - and the loop waits for
@@ -26,6 +26,7 @@ from typing import Any, Final
 
 from evclock._errors import ClockLostError, InvalidArgumentError, InvalidTypeError, Ros2MessageError
 from evclock.outside._threads import mark_internal
+from evclock.ros2._rmw import Middleware, resolve_middleware
 from evclock.ros2._session import (
     DEFAULT_CONNECT,
     DEFAULT_LISTEN,
@@ -34,6 +35,9 @@ from evclock.ros2._session import (
     require,
 )
 from evclock.ros2._wire import (
+    CLOCK_TYPE,
+    DEFAULT_WIRE_FORMAT,
+    WireFormat,
     check_node_name,
     check_type_hash,
     clock_subscription_key_expr,
@@ -43,6 +47,7 @@ from evclock.ros2._wire import (
     resolve_domain_id,
     resolve_topic,
 )
+from evclock.ros2._wire import wire_format as lookup_wire_format
 from evclock.sources import Gate, TimeSource
 from evclock.time._time import SIM, Time, new_time
 
@@ -72,13 +77,20 @@ def _check_timeout(value: object, what: str) -> float | None:
 
 
 class Ros2ClockSource(TimeSource):
-    """Sim time that follows a ROS 2 ``rosgraph_msgs/msg/Clock`` topic arriving over Zenoh.
+    """Sim time that follows a ROS 2 ``rosgraph_msgs/msg/Clock`` topic over DDS or Zenoh.
 
-    Construction opens a Zenoh peer session (``connect``/``listen`` endpoints as for
-    :class:`~evclock.ros2.Ros2ClockPublisher`), subscribes to ``topic`` in ``domain_id``
-    (default ``ROS_DOMAIN_ID``, else 0) with any rmw_zenoh wire format (Humble's or Jazzy's
-    key), declares a node and a subscription in the ROS graph, and **waits for the first
-    message**: the program starts at the publisher's time, as an rclcpp node waiting with
+    ``rmw`` chooses the middleware as a ROS node does (``"dds"``/``"zenoh"``; default: from
+    ``RMW_IMPLEMENTATION``, DDS when unset). On **DDS** construction opens a Cyclone DDS
+    participant (``CYCLONEDDS_URI`` configures it), reads ``rt/clock`` with the QoS of rclcpp's
+    time source (best effort, keep last 1, which every publisher feeds) and announces the node
+    and its subscription on ``ros_discovery_info`` (``wire_format``: ``"jazzy"``, or
+    ``"humble"`` for Humble's graph messages); a publisher whose QoS it cannot accept is
+    logged and named in the errors. On **Zenoh** it opens a peer session
+    (``connect``/``listen`` endpoints as for :class:`~evclock.ros2.Ros2ClockPublisher`) and
+    reads any rmw_zenoh wire format (Humble's or Jazzy's key). Either way it subscribes to
+    ``topic`` in ``domain_id`` (default ``ROS_DOMAIN_ID``, else 0), declares a node and a
+    subscription in the ROS graph, and **waits for the first message**: the program starts
+    at the publisher's time, as an rclcpp node waiting with
     ``Clock::wait_until_started()``. ``startup_timeout`` bounds that wait (None: wait as long
     as it takes, logging a warning every ``silence_timeout``).
 
@@ -91,8 +103,10 @@ class Ros2ClockSource(TimeSource):
     :param domain_id: the ROS domain id (default ``ROS_DOMAIN_ID``, else 0).
     :param topic: the Clock topic to follow.
     :param node_name: the name of the node evclock declares in the ROS graph.
-    :param connect: Zenoh endpoints to connect to (the rmw_zenoh router by default).
-    :param listen: Zenoh endpoints to accept peer connections on.
+    :param rmw: ``"dds"`` or ``"zenoh"`` (default: ``RMW_IMPLEMENTATION``, else DDS).
+    :param wire_format: the distribution's variant for DDS graph messages (``"jazzy"``).
+    :param connect: Zenoh endpoints to connect to (the rmw_zenoh router by default; Zenoh only).
+    :param listen: Zenoh endpoints to accept peer connections on (Zenoh only).
     :param startup_timeout: wall seconds to wait for the first message (None: no limit).
     :param silence_timeout: wall seconds without a message before :class:`~evclock.ClockLostError`
         (None: wait forever).
@@ -116,24 +130,27 @@ class Ros2ClockSource(TimeSource):
         domain_id: int | None = None,
         topic: str = "/clock",
         node_name: str = "evclock_follower",
-        connect: Sequence[str] = DEFAULT_CONNECT,
-        listen: Sequence[str] = DEFAULT_LISTEN,
+        rmw: str | None = None,
+        wire_format: str | WireFormat = DEFAULT_WIRE_FORMAT,
+        connect: Sequence[str] | None = None,
+        listen: Sequence[str] | None = None,
         startup_timeout: float | None = None,
         silence_timeout: float | None = DEFAULT_SILENCE_TIMEOUT,
     ) -> None:
         self._domain_id = resolve_domain_id(domain_id)
         self._topic = resolve_topic(topic)
         node_name = check_node_name(node_name)
-        self._connect = check_endpoints(connect, "connect")
-        listen = check_endpoints(listen, "listen")
+        wire = lookup_wire_format(wire_format)
+        self._middleware: Middleware = resolve_middleware(rmw)
         startup = _check_timeout(startup_timeout, "startup_timeout")
         self._silence_timeout = _check_timeout(silence_timeout, "silence_timeout")
-        self._key_expr = clock_subscription_key_expr(self._domain_id, self._topic)
-        self._zenoh = require("zenoh")
+        self._connect: tuple[str, ...] = ()
+        self._dds: Any = None
+        self._dds_reader: Any = None
         self._now = 0
         self._latest: int | None = None
         self._received = 0
-        self._inbox: collections.deque[tuple[str, bytes]] = collections.deque(
+        self._inbox: collections.deque[tuple[str | None, bytes]] = collections.deque(
             maxlen=_CHANNEL_CAPACITY
         )
         self._first = threading.Event()
@@ -144,6 +161,42 @@ class Ros2ClockSource(TimeSource):
         self._wake_pending = False
         self._loop_wakeable = False
         self._loop: Any = None  # the SimEventLoop this source drives (set by attach)
+        if self._middleware == "dds":
+            self._open_dds(node_name, wire, connect, listen)
+        else:
+            self._connect = check_endpoints(
+                DEFAULT_CONNECT if connect is None else connect, "connect"
+            )
+            self._open_zenoh(
+                node_name,
+                check_endpoints(DEFAULT_LISTEN if listen is None else listen, "listen"),
+            )
+        try:
+            self._wait_for_first(startup)
+        except BaseException:
+            self.close()
+            raise
+
+    def _open_dds(self, node_name: str, wire: WireFormat, connect: object, listen: object) -> None:
+        from evclock.ros2._dds import CLOCK_SUBSCRIPTION_QOS, DdsNode, check_no_zenoh_endpoints
+
+        check_no_zenoh_endpoints(connect, listen)
+        self._dds = DdsNode(self._domain_id, node_name, wire)
+        try:
+            self._dds_reader = self._dds.reader(
+                self._topic,
+                CLOCK_TYPE,
+                CLOCK_SUBSCRIPTION_QOS,
+                lambda payload: self._arrive(None, payload),
+                self._fail,
+            )
+        except BaseException:
+            self._dds.close()
+            raise
+
+    def _open_zenoh(self, node_name: str, listen: Sequence[str]) -> None:
+        self._key_expr = clock_subscription_key_expr(self._domain_id, self._topic)
+        self._zenoh = require("zenoh")
         self._session: Any = open_session(self._connect, listen)
         try:
             zid = str(self._session.zid())
@@ -175,7 +228,6 @@ class Ros2ClockSource(TimeSource):
             # that holds sim time nor a thread that could resume a paused loop.
             mark_internal(self._reader)
             self._reader.start()
-            self._wait_for_first(startup)
         except BaseException:
             self.close()
             raise
@@ -199,11 +251,30 @@ class Ros2ClockSource(TimeSource):
 
     @property
     def key_expr(self) -> str:
-        """The Zenoh key expression subscribed to (any type hash)."""
+        """The Zenoh key expression subscribed to (any type hash; Zenoh only)."""
+        if self._middleware != "zenoh":
+            raise InvalidArgumentError("key_expr is a Zenoh fact; this source speaks DDS")
         return self._key_expr
+
+    @property
+    def middleware(self) -> Middleware:
+        """The middleware spoken: ``"dds"`` or ``"zenoh"``."""
+        return self._middleware
+
+    def diagnostics(self) -> list[str]:
+        """What went wrong with publishers so far, for people: on DDS, publishers of the topic
+        whose QoS this subscription cannot accept."""
+        reader = self._dds_reader
+        if reader is None or reader.closed:
+            return []
+        problem = reader.incompatible()
+        return [] if problem is None else [problem]
 
     def describe(self) -> str:
         """The source for messages: topic, domain and endpoints."""
+        if self._middleware == "dds":
+            problems = "".join(f"; {problem}" for problem in self.diagnostics())
+            return f"ROS 2 {self._topic} (domain {self._domain_id}) over DDS{problems}"
         return (
             f"ROS 2 {self._topic} (domain {self._domain_id}) over Zenoh via "
             f"{', '.join(self._connect) or 'listen only'}"
@@ -276,20 +347,36 @@ class Ros2ClockSource(TimeSource):
                         f"the Zenoh subscription to {self._key_expr} failed: {exc}"
                     )
                 return
-            self._inbox.append((str(sample.key_expr), sample.payload.to_bytes()))
-            self._last_arrival = time.monotonic()
-            self._first.set()
-            loop = self._loop
-            if loop is None or not self._loop_wakeable:
-                continue  # the loop reads the inbox on its first advance
-            with self._wake_lock:
-                if self._wake_pending:
-                    continue
-                self._wake_pending = True
-            try:
-                loop.call_soon_threadsafe(self._drain_woken)
-            except RuntimeError:
-                return  # the loop closed under us: nobody is following any more
+            if not self._arrive(str(sample.key_expr), sample.payload.to_bytes()):
+                return
+
+    def _fail(self, exc: BaseException) -> None:
+        """A reader thread failed: the loop raises it on its next advance."""
+        self._error = ClockLostError(f"reading {self._topic} failed: {exc}")
+        self._first.set()
+        self._wake()
+
+    def _arrive(self, key_expr: str | None, payload: bytes) -> bool:
+        """On a reader thread: queue one sample and wake the loop; False once the loop closed.
+        ``key_expr`` is Zenoh's (its type hash is checked), None on DDS (typed by topic)."""
+        self._inbox.append((key_expr, payload))
+        self._last_arrival = time.monotonic()
+        self._first.set()
+        return self._wake()
+
+    def _wake(self) -> bool:
+        loop = self._loop
+        if loop is None or not self._loop_wakeable:
+            return True  # the loop reads the inbox on its first advance
+        with self._wake_lock:
+            if self._wake_pending:
+                return True
+            self._wake_pending = True
+        try:
+            loop.call_soon_threadsafe(self._drain_woken)
+        except RuntimeError:
+            return False  # the loop closed under us: nobody is following any more
+        return True
 
     def _drain_woken(self) -> None:
         with self._wake_lock:
@@ -303,7 +390,8 @@ class Ros2ClockSource(TimeSource):
         while inbox:
             key_expr, payload = inbox.popleft()
             try:
-                check_type_hash(key_expr)
+                if key_expr is not None:
+                    check_type_hash(key_expr)
                 time_ns = decode_clock(payload)
             except Ros2MessageError as exc:
                 self._error = exc
@@ -357,6 +445,9 @@ class Ros2ClockSource(TimeSource):
         if self._closing:
             return
         self._closing = True
+        if self._dds is not None:
+            self._dds.close()
+            return
         try:
             for token in getattr(self, "_tokens", ()):
                 token.undeclare()

@@ -1,10 +1,12 @@
 """``ros2://`` clock URLs: the launch-time choice ``clock="ros2:///clock"`` /
 ``EVCLOCK_CLOCK=ros2:///clock``.
 
-``ros2://[HOST:PORT]/TOPIC[?domain_id=N&connect=EP&listen=EP&startup_timeout=S&
-silence_timeout=S&node_name=NAME]``: ``HOST:PORT`` is a shorthand for ``connect=tcp/HOST:PORT``
-(default: rmw_zenoh's router on ``tcp/127.0.0.1:7447``); ``connect`` and ``listen`` may be
-repeated, or given empty (``listen=``) for none; a timeout of ``none`` waits forever.
+``ros2://[HOST:PORT]/TOPIC[?rmw=dds|zenoh&domain_id=N&connect=EP&listen=EP&startup_timeout=S&
+silence_timeout=S&node_name=NAME&wire_format=W]``: ``rmw`` chooses the middleware (default:
+``RMW_IMPLEMENTATION``, else DDS). On Zenoh, ``HOST:PORT`` is a shorthand for
+``connect=tcp/HOST:PORT`` (default: rmw_zenoh's router on ``tcp/127.0.0.1:7447``); ``connect``
+and ``listen`` may be repeated, or given empty (``listen=``) for none. A timeout of ``none``
+waits forever.
 """
 
 from __future__ import annotations
@@ -13,11 +15,19 @@ import urllib.parse
 from typing import Any
 
 from evclock._errors import InvalidArgumentError
-from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN
 from evclock.ros2._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
 
 SCHEME = "ros2"
-_KNOWN = ("domain_id", "connect", "listen", "startup_timeout", "silence_timeout", "node_name")
+_KNOWN = (
+    "rmw",
+    "domain_id",
+    "connect",
+    "listen",
+    "startup_timeout",
+    "silence_timeout",
+    "node_name",
+    "wire_format",
+)
 
 
 def _single(params: dict[str, list[str]], name: str, url: str) -> str | None:
@@ -29,12 +39,10 @@ def _single(params: dict[str, list[str]], name: str, url: str) -> str | None:
     return values[0]
 
 
-def _endpoints(
-    params: dict[str, list[str]], name: str, default: tuple[str, ...]
-) -> tuple[str, ...]:
-    """The endpoints given for ``name`` (``name=`` alone: none at all), else ``default``."""
+def _endpoints(params: dict[str, list[str]], name: str) -> tuple[str, ...] | None:
+    """The endpoints given for ``name`` (``name=`` alone: none at all), else None."""
     if name not in params:
-        return default
+        return None
     return tuple(value for value in params[name] if value)
 
 
@@ -66,7 +74,7 @@ def source_options(url: str) -> dict[str, Any]:
         raise InvalidArgumentError(
             f"unknown parameter(s) {', '.join(unknown)} in {url!r}; known: {', '.join(_KNOWN)}"
         )
-    connect = _endpoints(params, "connect", DEFAULT_CONNECT)
+    connect = _endpoints(params, "connect")
     if parts.netloc:
         if "connect" in params:
             raise InvalidArgumentError(f"{url!r} gives both a host and connect=; use one of them")
@@ -74,7 +82,7 @@ def source_options(url: str) -> dict[str, Any]:
     options: dict[str, Any] = {
         "topic": parts.path,
         "connect": connect,
-        "listen": _endpoints(params, "listen", DEFAULT_LISTEN),
+        "listen": _endpoints(params, "listen"),
         "startup_timeout": _seconds(
             _single(params, "startup_timeout", url), "startup_timeout", None, url
         ),
@@ -90,17 +98,19 @@ def source_options(url: str) -> dict[str, Any]:
         if not domain.isdigit():
             raise InvalidArgumentError(f"domain_id in {url!r} must be an integer, got {domain!r}")
         options["domain_id"] = int(domain)
-    node_name = _single(params, "node_name", url)
-    if node_name is not None:
-        options["node_name"] = node_name
+    for name in ("node_name", "rmw", "wire_format"):
+        value = _single(params, name, url)
+        if value is not None:
+            options[name] = value
     return options
 
 
 def source_from_url(url: str) -> Ros2ClockSource:
     """Open a :class:`Ros2ClockSource` as a ``ros2://`` URL describes (waits for /clock).
 
-    :param url: ``ros2://[HOST:PORT]/TOPIC`` with optional ``domain_id``, ``node_name``,
-        ``connect``, ``listen``, ``startup_timeout`` and ``silence_timeout`` query options.
+    :param url: ``ros2://[HOST:PORT]/TOPIC`` with optional ``rmw``, ``domain_id``,
+        ``node_name``, ``wire_format``, ``connect``, ``listen``, ``startup_timeout`` and
+        ``silence_timeout`` query options.
     :returns: the source, once the first ``/clock`` message arrived.
     :raises InvalidArgumentError: a malformed URL, an unknown or repeated option, or an
         invalid option value.

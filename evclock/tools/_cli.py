@@ -250,6 +250,7 @@ def run_command(
     ros2_wire_format: ros2_cli.Ros2WireFormat = ros2_cli.DEFAULT_WIRE_FORMAT,
     ros2_connect: ros2_cli.Ros2Connect = None,
     ros2_listen: ros2_cli.Ros2Listen = None,
+    rmw: ros2_cli.Rmw = None,
 ) -> None:
     """Run a scenario with its controllers on evclock time.
 
@@ -269,13 +270,14 @@ def run_command(
             ros2_wire_format,
             ros2_connect,
             ros2_listen,
+            rmw,
         )
         if ros2 is not None:
             if serve is not None:
                 raise InvalidArgumentError("--ros2-clock with --serve is not supported; pick one")
             from evclock.ros2._session import require
 
-            for module in ("zenoh", "xxhash"):  # the ros2 extra: fail before any run
+            for module in ros2.extras:  # the ros2 extra: fail before any run
                 require(module)
             console.print(ros2.describe(), soft_wrap=True)
         if wall and pace is not None:

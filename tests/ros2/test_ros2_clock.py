@@ -48,6 +48,12 @@ KEY = f"0/clock/rosgraph_msgs::msg::dds_::Clock_/{CLOCK_TYPE_HASH}"
 S = 1_000_000_000
 
 
+@pytest.fixture(autouse=True)
+def _zenoh_middleware(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests speak Zenoh: chosen as a ROS node chooses it (DDS is the default)."""
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_zenoh_cpp")
+
+
 @pytest.fixture
 def endpoint() -> Iterator[str]:
     pytest.importorskip("zenoh", reason="needs evclock[ros2] (eclipse-zenoh)")

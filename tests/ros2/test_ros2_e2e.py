@@ -33,6 +33,12 @@ needs_ros2 = pytest.mark.skipif(
 )
 
 
+@pytest.fixture(autouse=True)
+def _zenoh_middleware(monkeypatch: pytest.MonkeyPatch) -> None:
+    """These tests speak Zenoh: chosen as a ROS node chooses it (DDS is the default)."""
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_zenoh_cpp")
+
+
 @pytest.fixture
 def folder() -> Iterator[str]:
     with tempfile.TemporaryDirectory(prefix="evros2") as path:  # short: sun_path limit

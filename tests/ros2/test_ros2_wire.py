@@ -243,11 +243,13 @@ def test_unknown_wire_format_lists_the_known_ones() -> None:
 def test_clock_urls_map_to_source_options() -> None:
     assert source_options("ros2:///clock") == {
         "topic": "/clock",
-        "connect": ("tcp/127.0.0.1:7447",),
-        "listen": ("tcp/127.0.0.1:0",),
+        "connect": None,  # the source's default: rmw_zenoh's router on Zenoh, an error on DDS
+        "listen": None,
         "startup_timeout": None,
         "silence_timeout": 10.0,
     }
+    assert source_options("ros2:///clock?rmw=dds&wire_format=humble")["rmw"] == "dds"
+    assert source_options("ros2:///clock?rmw=zenoh")["rmw"] == "zenoh"
     options = source_options(
         "ros2://127.0.0.1:7450/sim/clock?domain_id=3&silence_timeout=none&startup_timeout=2"
     )
