@@ -1,11 +1,12 @@
-"""A PyBullet simulation publishes its time as ROS 2 ``/clock`` over Zenoh (rmw_zenoh format).
+"""A PyBullet simulation publishes its time as ROS 2 ``/clock`` over DDS or Zenoh.
 
-Run it with ``python examples/ros2_clock_publisher.py`` while rmw_zenoh's router runs
-(``ros2 run rmw_zenoh_cpp rmw_zenohd``), then, in a ROS 2 shell with
-``RMW_IMPLEMENTATION=rmw_zenoh_cpp``: ``ros2 topic echo /clock``. Every physics step (240 Hz
-of sim time, paced at real time) is published; a ROS 2 node with ``use_sim_time:=true``
-follows it. ``--listen``/``--connect`` choose other Zenoh endpoints, e.g. a Unix socket that
-``examples/ros2_clock_follower.py`` connects to (what the tests do, without ROS).
+Run it with ``python examples/ros2_clock_publisher.py``, then, in a ROS 2 shell (any DDS
+middleware, ROS's default): ``ros2 topic echo /clock``. Every physics step (240 Hz of sim
+time, paced at real time) is published; a ROS 2 node with ``use_sim_time:=true`` follows it.
+With ``RMW_IMPLEMENTATION=rmw_zenoh_cpp`` it speaks rmw_zenoh's format instead, to rmw_zenoh's
+router (``ros2 run rmw_zenoh_cpp rmw_zenohd``) or, with ``--listen``/``--connect``, to other
+Zenoh endpoints, e.g. a Unix socket that ``examples/ros2_clock_follower.py`` connects to (what
+the tests do, without ROS).
 """
 
 from __future__ import annotations
@@ -31,18 +32,19 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--until", type=float, default=5.0, help="sim seconds to run")
     parser.add_argument("--rtf", type=float, default=1.0, help="real-time factor")
-    parser.add_argument("--connect", action="append", help=f"default {DEFAULT_CONNECT[0]}")
-    parser.add_argument("--listen", action="append", help=f"default {DEFAULT_LISTEN[0]}")
+    parser.add_argument(
+        "--connect", action="append", help=f"Zenoh only; default {DEFAULT_CONNECT[0]}"
+    )
+    parser.add_argument(
+        "--listen", action="append", help=f"Zenoh only; default {DEFAULT_LISTEN[0]}"
+    )
     args = parser.parse_args()
 
     source = evclock.sources.PyBulletTimeSource.connect()
     box = build_world(source.client)
-    with Ros2ClockPublisher(
-        connect=DEFAULT_CONNECT if args.connect is None else args.connect,
-        listen=DEFAULT_LISTEN if args.listen is None else args.listen,
-    ) as publisher:
+    with Ros2ClockPublisher(connect=args.connect, listen=args.listen) as publisher:
         publisher.attach(source)  # publish now and after every physics step
-        print(f"publishing {publisher.topic} on {publisher.key_expr}", flush=True)
+        print(f"publishing {publisher.topic}: {publisher!r}", flush=True)
 
         async def watch() -> None:
             async for tick in evclock.clock().rate(1):  # a status line every sim second
