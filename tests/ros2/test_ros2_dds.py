@@ -508,3 +508,34 @@ def test_evclock_publisher_and_follower_in_separate_processes() -> None:
         with publisher.stderr:
             err = publisher.stderr.read()
     assert publisher.returncode == 0, err
+
+
+def test_humble_graph_messages_carry_24_byte_gids_and_no_type_hash() -> None:
+    from evclock.ros2._dds import DdsNode, user_data
+    from evclock.ros2._wire import WIRE_FORMATS
+
+    humble = WIRE_FORMATS["humble"]
+    assert user_data("rosgraph_msgs/msg/Clock", humble) == b""
+    node = DdsNode(int(os.environ["ROS_DOMAIN_ID"]), "old", humble)
+    try:
+        info = node.graph_message()
+        assert len(info.gid.data) == 24  # rmw_dds_common 1.6 (Humble): char[24]
+        assert bytes(info.gid.data)[16:] == bytes(8)
+        assert info.node_entities_info_seq[0].node_name == "old"
+    finally:
+        node.close()
+
+
+def test_unreadable_clock_sample_ends_the_run(plain: DomainParticipant) -> None:
+    from evclock.ros2 import Ros2MessageError
+    from evclock.ros2._dds import write_raw
+
+    feed = PlainClock(plain)
+    source = start_follower(feed, 1 * S)
+
+    async def main() -> None:
+        write_raw(feed._writer, b"\x00\x03\x00\x00" + bytes(8))  # not plain CDR
+        await asyncio.sleep(10)
+
+    with pytest.raises(Ros2MessageError, match="encapsulation 0003"):
+        evclock.run(main(), source=source)
