@@ -9,7 +9,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Iterator
-from typing import TYPE_CHECKING, Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
@@ -34,13 +34,20 @@ from evclock.ros2._wire import (
 )
 
 if TYPE_CHECKING:
-    from evclock.sources import PyBulletTimeSource
+    from evclock.sources import SteppingTimeSource
 
 Ros2ClockFlag = Annotated[
     bool,
     typer.Option(
         "--ros2-clock",
         help="Publish sim time as ROS 2 /clock over DDS or Zenoh (see --rmw; ros2 extra).",
+    ),
+]
+Ros2Flag = Annotated[
+    bool,
+    typer.Option(
+        "--ros2",
+        help="Publish /clock, /joint_states and /tf on sim time over DDS (ros2 extra).",
     ),
 ]
 Rmw = Annotated[
@@ -95,6 +102,7 @@ class Ros2ClockOptions:
     connect: tuple[str, ...] | None
     listen: tuple[str, ...] | None
     middleware: Middleware = "dds"
+    robot_state: bool = False
 
     @property
     def key_expr(self) -> str:
@@ -110,8 +118,10 @@ class Ros2ClockOptions:
     def describe(self) -> str:
         every = "every step" if self.decimation == 1 else f"every {self.decimation} steps"
         if self.middleware == "dds":
+            topics = ("/clock", "/joint_states", "/tf") if self.robot_state else ("/clock",)
             return (
-                f"publishing /clock {every} over DDS on rt/clock in domain {self.domain_id} "
+                f"publishing {', '.join(topics)} {every} over DDS "
+                f"({', '.join('rt' + topic for topic in topics)}) in domain {self.domain_id} "
                 f"({self.wire_format} wire format)"
             )
         connect = self.connect or ()
@@ -131,8 +141,11 @@ def options_from_cli(
     connect: list[str] | None,
     listen: list[str] | None,
     rmw: str | None = None,
+    robot_state: bool = False,
 ) -> Ros2ClockOptions | None:
-    """Validate the options; None when ``--ros2-clock`` is off (then the others are errors)."""
+    """Validate the options; None when ``--ros2-clock`` and ``--ros2`` are off (then the others
+    are errors). ``--ros2`` is ``--ros2-clock`` and the robot state."""
+    enabled = enabled or robot_state
     if not enabled:
         given = [
             name
@@ -147,7 +160,7 @@ def options_from_cli(
             if value != default
         ]
         if given:
-            raise InvalidArgumentError(f"{', '.join(given)}: only with --ros2-clock")
+            raise InvalidArgumentError(f"{', '.join(given)}: only with --ros2-clock or --ros2")
         return None
     if decimation < 1:
         raise InvalidArgumentError(
@@ -167,6 +180,7 @@ def options_from_cli(
             connect=None,
             listen=None,
             middleware="dds",
+            robot_state=robot_state,
         )
     return Ros2ClockOptions(
         domain_id=resolve_domain_id(domain_id),
@@ -175,12 +189,13 @@ def options_from_cli(
         connect=check_endpoints(DEFAULT_CONNECT if connect is None else connect, "--ros2-connect"),
         listen=check_endpoints(DEFAULT_LISTEN if listen is None else listen, "--ros2-listen"),
         middleware="zenoh",
+        robot_state=robot_state,
     )
 
 
 @contextlib.contextmanager
 def publishing(
-    source: PyBulletTimeSource, options: Ros2ClockOptions | None
+    source: SteppingTimeSource[Any], options: Ros2ClockOptions | None
 ) -> Iterator[Ros2ClockPublisher | None]:
     """Publish ``source``'s time as /clock while the block runs (nothing when ``options`` is
     None)."""

@@ -41,7 +41,7 @@ from evclock.time._time import SIM, Time
 
 if TYPE_CHECKING:
     from evclock.ros2._dds import DdsNode
-    from evclock.sources import PyBulletTimeSource, StepHook
+    from evclock.sources import StepHook, SteppingTimeSource
 
 logger = logging.getLogger("evclock.ros2")
 
@@ -256,18 +256,19 @@ class Ros2ClockPublisher:
             self._incompatible_reported = problem
             logger.warning("%s", problem)
 
-    def attach(self, source: PyBulletTimeSource, *, decimation: int = 1) -> StepHook:
+    def attach(self, source: SteppingTimeSource[Any], *, decimation: int = 1) -> StepHook:
         """Publish ``source``'s time now and after every ``decimation``-th physics step.
 
         Returns the step hook (``remove()`` stops publishing). Per-step hooks make the
         source step one step at a time, which is what publishing every step needs.
         """
-        from evclock.sources import PyBulletTimeSource
+        from evclock.sources import SteppingTimeSource
 
-        if not isinstance(source, PyBulletTimeSource):
+        if not isinstance(source, SteppingTimeSource):
             raise InvalidTypeError(
-                f"attach() takes a PyBulletTimeSource, got {type(source).__name__}; on another "
-                "source publish at a sim-time rate with run(hz)"
+                f"attach() takes a stepping source (PyBullet's, MuJoCo's), got "
+                f"{type(source).__name__}; on another source publish at a sim-time rate with "
+                "run(hz)"
             )
         period = _check_decimation(decimation)
         self.publish(source.now_ns)

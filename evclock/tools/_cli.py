@@ -251,6 +251,7 @@ def run_command(
     ros2_connect: ros2_cli.Ros2Connect = None,
     ros2_listen: ros2_cli.Ros2Listen = None,
     rmw: ros2_cli.Rmw = None,
+    ros2: ros2_cli.Ros2Flag = False,
 ) -> None:
     """Run a scenario with its controllers on evclock time.
 
@@ -263,7 +264,7 @@ def run_command(
         check_seed(seed)
         check_until(until)
         pace = parse_rtf(rtf)
-        ros2 = ros2_cli.options_from_cli(
+        ros2_options = ros2_cli.options_from_cli(
             ros2_clock,
             ros_domain_id,
             ros2_clock_decimation,
@@ -271,15 +272,16 @@ def run_command(
             ros2_connect,
             ros2_listen,
             rmw,
+            ros2,
         )
-        if ros2 is not None:
+        if ros2_options is not None:
             if serve is not None:
                 raise InvalidArgumentError("--ros2-clock with --serve is not supported; pick one")
             from evclock.ros2._session import require
 
-            for module in ros2.extras:  # the ros2 extra: fail before any run
+            for module in ros2_options.extras:  # the ros2 extra: fail before any run
                 require(module)
-            console.print(ros2.describe(), soft_wrap=True)
+            console.print(ros2_options.describe(), soft_wrap=True)
         if wall and pace is not None:
             raise InvalidArgumentError("--wall runs in real time: drop --rtf (or use --rtf max)")
         for path, option in ((json_out, "--json"), (record, "--record")):
@@ -331,7 +333,7 @@ def run_command(
                     wall=wall,
                     record=record,
                     progress=progress,
-                    ros2_clock=ros2,
+                    ros2_clock=ros2_options,
                     engine=engine,
                 )
     except EvClockError as exc:

@@ -423,21 +423,7 @@ class Recorder:
 
     @staticmethod
     def _read_world(world: Any) -> World | MuJoCoWorldReader | None:
-        """The reader of ``world``: a PyBullet client id, or an object with a MuJoCo
-        ``model`` and ``data`` (a MuJoCo source, an ``evclock_sims.MuJoCoWorld``); None when
-        it is neither (then the scenario's state vector is recorded)."""
-        if isinstance(world, int) and not isinstance(world, bool):
-            from evclock._extras import import_extra
-            from evclock.tools._foxglove import World
-
-            pybullet = import_extra("pybullet", "pybullet", needed_by="recording a run")
-            return World(world, pybullet)
-        model, data = getattr(world, "model", None), getattr(world, "data", None)
-        if model is not None and data is not None:
-            from evclock.tools._world_mujoco import MuJoCoWorldReader
-
-            return MuJoCoWorldReader(model, data)
-        return None
+        return world_reader(world)
 
     def _logged(self, log: logging.LogRecord) -> None:
         from evclock.tools._foxglove import LOG_SCHEMA, log_message
@@ -589,3 +575,21 @@ def foxglove_option(
     parse_address(address)
     import_extra("foxglove", "record", needed_by="evclock run --foxglove")
     return live_view(address), 1.0 if rtf is None else rtf
+
+
+def world_reader(world: Any) -> World | MuJoCoWorldReader | None:
+    """The reader of ``world``: a PyBullet client id, or an object with a MuJoCo ``model`` and
+    ``data`` (a MuJoCo source, an ``evclock_sims.MuJoCoWorld``); None when it is neither (then
+    the recorder records the scenario's state vector)."""
+    if isinstance(world, int) and not isinstance(world, bool):
+        from evclock._extras import import_extra
+        from evclock.tools._foxglove import World
+
+        pybullet = import_extra("pybullet", "pybullet", needed_by="reading a PyBullet world")
+        return World(world, pybullet)
+    model, data = getattr(world, "model", None), getattr(world, "data", None)
+    if model is not None and data is not None:
+        from evclock.tools._world_mujoco import MuJoCoWorldReader
+
+        return MuJoCoWorldReader(model, data)
+    return None

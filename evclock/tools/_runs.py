@@ -470,6 +470,7 @@ def _run_on_sim_time(
     engine: str = "pybullet",
 ) -> RunReport:
     from evclock.ros2._cli import publishing
+    from evclock.tools._ros2_state import publishing_robot_state
 
     output: list[str] = []
     recorder: Recorder | None = None
@@ -553,7 +554,10 @@ def _run_on_sim_time(
 
     report: RunReport | None = None
     try:
-        with publishing(source, ros2_clock):
+        with (
+            publishing(source, ros2_clock),
+            publishing_robot_state(source, ros2_clock),
+        ):
             report = evclock_run(main(), source=source, rtf=rtf)
     finally:
         if recorder is not None:

@@ -238,7 +238,7 @@ def test_publisher_rejects_bad_input(endpoint: str) -> None:
         pub.publish(Time(1, clock_type=evclock.STEADY))
     with pytest.raises(InvalidTypeError, match="publish\\(\\) takes a sim Time or int"):
         pub.publish(True)
-    with pytest.raises(InvalidTypeError, match="attach\\(\\) takes a PyBulletTimeSource"):
+    with pytest.raises(InvalidTypeError, match="attach\\(\\) takes a stepping source"):
         pub.attach(evclock.sources.VirtualTimeSource())  # type: ignore[arg-type]
     with pytest.raises(InvalidArgumentError, match="decimation must be >= 1"):
         pub.attach(evclock.sources.PyBulletTimeSource.connect(), decimation=0)

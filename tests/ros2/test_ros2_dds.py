@@ -301,7 +301,7 @@ def test_cli_run_publishes_exact_step_times_to_a_ros_subscriber(plain: DomainPar
     times.extend(clock_ns(s) for s in take_all(reader))
     assert run.returncode == 3, err  # status 3: cut short by --until, as asked
     assert "CUT SHORT at --until 0.5 s" in out
-    assert "over DDS on rt/clock" in out
+    assert "publishing /clock every step over DDS (rt/clock) in domain" in out
     assert times, "no /clock sample reached the subscriber"
     step = 12_500_000 / 3  # 240 Hz, as evclock rounds each step time (floor)
     assert all(round(ns / step) * 12_500_000 // 3 == ns for ns in times)

@@ -1,0 +1,157 @@
+"""``evclock run SCENARIO --ros2``: the simulated robot on ROS 2 topics, stamped with sim time.
+
+Besides ``/clock`` (:mod:`evclock.ros2`), every published step writes ``sensor_msgs/JointState``
+on ``/joint_states`` (each moving joint's position, velocity and effort) and
+``tf2_msgs/TFMessage`` on ``/tf`` (every link frame in the ``world`` frame), read by name from
+the world with the recorder's readers (PyBullet's :class:`~evclock.tools._foxglove.World`,
+MuJoCo's :class:`~evclock.tools._world_mujoco.MuJoCoWorldReader`), so RViz2, ``ros2 topic echo``
+and ``ros2 bag record`` show the robot on sim time. The messages are rosbags' classes of the
+distribution spoken, serialised by rosbags; the topics' QoS are those of ROS's own publishers:
+``/tf`` as tf2_ros' ``DynamicBroadcasterQoS`` (reliable, volatile, keep last 100) and
+``/joint_states`` as joint_state_publisher's (reliable, volatile, keep last 10).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+from typing import TYPE_CHECKING, Any, Final
+
+from evclock._errors import InvalidArgumentError
+from evclock.ros2._dds import DdsNode, DdsQos
+from evclock.ros2._types import message_class, serialize
+from evclock.ros2._wire import wire_format
+
+if TYPE_CHECKING:
+    from evclock.ros2._cli import Ros2ClockOptions
+
+JOINT_STATE: Final = "sensor_msgs/msg/JointState"
+TF_MESSAGE: Final = "tf2_msgs/msg/TFMessage"
+TF_QOS: Final = DdsQos(reliable=True, transient_local=False, depth=100)
+"""tf2_ros ``DynamicBroadcasterQoS`` (``tf2_ros/qos.hpp``): reliable, volatile, keep last 100."""
+JOINT_STATES_QOS: Final = DdsQos(reliable=True, transient_local=False, depth=10)
+"""joint_state_publisher's and robot_state_publisher's ``/joint_states``: reliable, depth 10."""
+
+
+class RobotStatePublisher:
+    """Publishes a world's joint states and link frames as ROS 2 messages over DDS.
+
+    :param reader: the world's reader (``joint_states(ns)`` and ``transforms(ns)`` dicts).
+    :param options: the validated ``--ros2`` options (domain, wire format).
+    """
+
+    def __init__(self, reader: Any, options: Ros2ClockOptions) -> None:
+        self._reader = reader
+        self._wire = wire_format(options.wire_format)
+        self._node = DdsNode(options.domain_id, "evclock_robot_state", self._wire)
+        try:
+            self._joint_states = self._node.writer("/joint_states", JOINT_STATE, JOINT_STATES_QOS)
+            self._tf = self._node.writer("/tf", TF_MESSAGE, TF_QOS)
+        except BaseException:
+            self._node.close()
+            raise
+        self._cls = {
+            name: message_class(name, self._wire)
+            for name in (
+                JOINT_STATE,
+                TF_MESSAGE,
+                "std_msgs/msg/Header",
+                "builtin_interfaces/msg/Time",
+                "geometry_msgs/msg/TransformStamped",
+                "geometry_msgs/msg/Transform",
+                "geometry_msgs/msg/Vector3",
+                "geometry_msgs/msg/Quaternion",
+            )
+        }
+        self.published = 0
+
+    def _header(self, time_ns: int, frame_id: str) -> Any:
+        sec, nanosec = divmod(time_ns, 1_000_000_000)
+        stamp = self._cls["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+        return self._cls["std_msgs/msg/Header"](stamp=stamp, frame_id=frame_id)
+
+    def joint_state(self, time_ns: int) -> Any:
+        """The ``sensor_msgs/JointState`` message of the world now, stamped ``time_ns``."""
+        import numpy
+
+        joints = self._reader.joint_states(time_ns)["joints"]
+
+        def column(key: str) -> Any:
+            return numpy.array([float(j[key]) for j in joints], dtype=numpy.float64)
+
+        return self._cls[JOINT_STATE](
+            header=self._header(time_ns, ""),
+            name=[str(j["name"]) for j in joints],
+            position=column("position"),
+            velocity=column("velocity"),
+            effort=column("effort"),
+        )
+
+    def tf(self, time_ns: int) -> Any:
+        """The ``tf2_msgs/TFMessage`` of every link frame now, stamped ``time_ns``."""
+        cls = self._cls
+        transforms = []
+        for frame in self._reader.transforms(time_ns)["transforms"]:
+            t, r = frame["translation"], frame["rotation"]
+            transforms.append(
+                cls["geometry_msgs/msg/TransformStamped"](
+                    header=self._header(time_ns, frame["parent_frame_id"]),
+                    child_frame_id=frame["child_frame_id"],
+                    transform=cls["geometry_msgs/msg/Transform"](
+                        translation=cls["geometry_msgs/msg/Vector3"](x=t["x"], y=t["y"], z=t["z"]),
+                        rotation=cls["geometry_msgs/msg/Quaternion"](
+                            x=r["x"], y=r["y"], z=r["z"], w=r["w"]
+                        ),
+                    ),
+                )
+            )
+        return cls[TF_MESSAGE](transforms=transforms)
+
+    def publish(self, time_ns: int) -> None:
+        """Write the joint states and the link frames at ``time_ns``."""
+        self._joint_states.write(serialize(self.joint_state(time_ns), JOINT_STATE, self._wire))
+        self._tf.write(serialize(self.tf(time_ns), TF_MESSAGE, self._wire))
+        self.published += 1
+
+    def close(self) -> None:
+        """Withdraw the node from the ROS graph."""
+        self._node.close()
+
+
+@contextlib.contextmanager
+def publishing_robot_state(
+    source: Any, options: Ros2ClockOptions | None
+) -> Iterator[RobotStatePublisher | None]:
+    """Publish the robot state every ``options.decimation`` physics steps while the block runs
+    (nothing unless ``--ros2`` asked for it)."""
+    if options is None or not options.robot_state:
+        yield None
+        return
+    if options.middleware != "dds":
+        raise InvalidArgumentError(
+            "--ros2 publishes the robot state over DDS only for now; drop --rmw zenoh (or use "
+            "--ros2-clock for /clock alone over Zenoh)"
+        )
+    from evclock.tools._record import world_reader
+
+    reader = world_reader(getattr(source, "client", source))
+    if reader is None:
+        raise InvalidArgumentError("--ros2 needs a PyBullet or MuJoCo world to read the robot from")
+    publisher = RobotStatePublisher(reader, options)
+    period = options.decimation
+    countdown = period
+
+    def publish_step() -> None:
+        nonlocal countdown
+        countdown -= 1
+        if countdown == 0:
+            countdown = period
+            publisher.publish(source.now_ns)
+
+    publisher.publish(source.now_ns)
+    hook = source.add_step_hook(publish_step, when="after")
+    try:
+        yield publisher
+    finally:
+        hook.remove()
+        publisher.close()

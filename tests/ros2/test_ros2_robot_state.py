@@ -1,0 +1,160 @@
+"""``evclock run SCENARIO --ros2``: the robot on /joint_states and /tf over DDS, on sim time.
+
+A plain Cyclone DDS participant of the test reads the topics with ROS's type names, written
+here from the message definitions; every wait is bounded. Loopback only, a test-unique domain
+(see ``test_ros2_dds.py``).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+cyclonedds = pytest.importorskip("cyclonedds", reason="needs evclock[ros2] (cyclonedds)")
+rosbags_typesys = pytest.importorskip("rosbags.typesys", reason="needs rosbags")
+
+from cyclonedds.domain import DomainParticipant  # noqa: E402
+from cyclonedds.idl import make_idl_struct  # noqa: E402
+from cyclonedds.idl import types as t  # noqa: E402
+from cyclonedds.qos import Policy, Qos  # noqa: E402
+from cyclonedds.sub import DataReader  # noqa: E402
+from cyclonedds.topic import Topic  # noqa: E402
+
+S = 1_000_000_000
+EVCLOCK_RUN = (sys.executable, "-m", "evclock", "run")
+ROOT = Path(__file__).resolve().parents[2]
+LOOPBACK_CONFIG = """<CycloneDDS xmlns="https://cdds.io/config"><Domain id="any">
+<General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
+<AllowMulticast>false</AllowMulticast></General>
+<Discovery><ParticipantIndex>auto</ParticipantIndex>
+<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex>
+<Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>"""
+_domains = itertools.count()
+
+Time_ = make_idl_struct(
+    "Time_", "builtin_interfaces::msg::dds_::Time_", {"sec": t.int32, "nanosec": t.uint32}
+)
+Header_ = make_idl_struct(
+    "Header_", "std_msgs::msg::dds_::Header_", {"stamp": Time_, "frame_id": str}
+)
+JointState_ = make_idl_struct(
+    "JointState_",
+    "sensor_msgs::msg::dds_::JointState_",
+    {
+        "header": Header_,
+        "name": t.sequence[str],
+        "position": t.sequence[t.float64],
+        "velocity": t.sequence[t.float64],
+        "effort": t.sequence[t.float64],
+    },
+)
+Vector3_ = make_idl_struct(
+    "Vector3_",
+    "geometry_msgs::msg::dds_::Vector3_",
+    {"x": t.float64, "y": t.float64, "z": t.float64},
+)
+Quaternion_ = make_idl_struct(
+    "Quaternion_",
+    "geometry_msgs::msg::dds_::Quaternion_",
+    {"x": t.float64, "y": t.float64, "z": t.float64, "w": t.float64},
+)
+Transform_ = make_idl_struct(
+    "Transform_",
+    "geometry_msgs::msg::dds_::Transform_",
+    {"translation": Vector3_, "rotation": Quaternion_},
+)
+TransformStamped_ = make_idl_struct(
+    "TransformStamped_",
+    "geometry_msgs::msg::dds_::TransformStamped_",
+    {"header": Header_, "child_frame_id": str, "transform": Transform_},
+)
+TFMessage_ = make_idl_struct(
+    "TFMessage_", "tf2_msgs::msg::dds_::TFMessage_", {"transforms": t.sequence[TransformStamped_]}
+)
+RELIABLE = Qos(Policy.Reliability.Reliable(max_blocking_time=100_000_000), Policy.History.KeepAll)
+
+
+@pytest.fixture
+def plain(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[DomainParticipant]:
+    config = tmp_path / "cyclonedds.xml"
+    config.write_text(LOOPBACK_CONFIG)
+    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
+    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
+    domain = 100 + (os.getpid() * 11 + 60 + next(_domains)) % 120
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    participant = DomainParticipant(domain)
+    yield participant
+    participant.__del__()
+
+
+def stamp_ns(header: Any) -> int:
+    return int(header.stamp.sec) * S + int(header.stamp.nanosec)
+
+
+@pytest.mark.parametrize("engine", ["pybullet", "mujoco"])
+def test_run_publishes_joint_states_and_tf_on_sim_time(
+    engine: str, plain: DomainParticipant
+) -> None:
+    pytest.importorskip("pybullet" if engine == "pybullet" else "mujoco")
+    joints = DataReader(plain, Topic(plain, "rt/joint_states", JointState_), qos=RELIABLE)
+    tf = DataReader(plain, Topic(plain, "rt/tf", TFMessage_), qos=RELIABLE)
+    run = subprocess.Popen(
+        [*EVCLOCK_RUN, "kuka", "--ros2", "--engine", engine, "--until", "0.25"],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    states: list[Any] = []
+    frames: list[Any] = []
+    try:
+        deadline = time.monotonic() + 60
+        while run.poll() is None and time.monotonic() < deadline:
+            states.extend(joints.take(256))
+            frames.extend(tf.take(256))
+            time.sleep(0.002)
+        out, err = run.communicate(timeout=60)
+    finally:
+        if run.poll() is None:
+            run.kill()
+            run.communicate()
+    states.extend(joints.take(256))
+    frames.extend(tf.take(256))
+    # The writers' end arrives as sample-less notifications (InvalidSample): data only.
+    states = [s for s in states if isinstance(s, JointState_)]
+    frames = [f for f in frames if isinstance(f, TFMessage_)]
+    assert run.returncode == 3, err  # cut short by --until, as asked
+    assert (
+        "publishing /clock, /joint_states, /tf every step over DDS "
+        "(rt/clock, rt/joint_states, rt/tf)" in out
+    )
+    assert states, "no JointState reached the subscriber"
+    assert frames, "no TFMessage reached the subscriber"
+    step = 12_500_000 / 3  # 240 Hz, each step time floored to ns
+    for state in states:
+        ns = stamp_ns(state.header)
+        assert round(ns / step) * 12_500_000 // 3 == ns  # stamped with a step's sim time
+        assert len(state.name) == len(state.position) == len(state.velocity) == len(state.effort)
+        assert len(state.name) >= 7  # the KUKA arm's joints, by name
+    stamps = [stamp_ns(s.header) for s in states]
+    assert stamps == sorted(stamps)
+    assert stamps[-1] <= S // 4
+    for message in frames:
+        assert message.transforms
+        assert {f.header.frame_id for f in message.transforms} == {"world"}
+        assert len({stamp_ns(f.header) for f in message.transforms}) == 1
+    # The payload layout is rosbags' (the message definitions of ROS 2 Jazzy).
+    store = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
+    last = states[-1]
+    rebuilt = store.deserialize_cdr(last.serialize(), "sensor_msgs/msg/JointState")
+    assert list(rebuilt.name) == list(last.name)
+    assert list(rebuilt.position) == list(last.position)
+    assert bytes(store.serialize_cdr(rebuilt, "sensor_msgs/msg/JointState")) == last.serialize()
