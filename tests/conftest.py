@@ -1,5 +1,5 @@
 """Shared set-up of the test suite: the repository root on sys.path (for ``examples``), the
-evclock under test, the PyBullet rule, Ctrl-C for child processes.
+evclock under test, the PyBullet rule, Ctrl-C for child processes, DDS on loopback only.
 
 The repository root is *appended* to sys.path, so an installed evclock is imported before
 a package folder beside the tests. CI tests the installed wheel from a copy of the
@@ -39,9 +39,20 @@ pytest_plugins = ["_pybullet_fixtures"]
 HAVE_PYBULLET = importlib.util.find_spec("pybullet") is not None
 _PYBULLET_WHEELS = sys.version_info < (3, 12)  # as the test extra's marker says
 _SKIP_REASON = "PyBullet is not installed: pip install 'evclock[pybullet]'"
+#: Cyclone DDS on the loopback interface only, multicast off, peers found by unicast on
+#: 127.0.0.1: every DDS participant of the suite (and of the processes it starts, docs blocks
+#: included) stays on the host. Cyclone DDS reads CYCLONEDDS_URI as a file URI or inline XML.
+LOOPBACK_CYCLONEDDS = (
+    '<CycloneDDS xmlns="https://cdds.io/config"><Domain id="any"><General><Interfaces>'
+    '<NetworkInterface address="127.0.0.1"/></Interfaces><AllowMulticast>false'
+    "</AllowMulticast></General><Discovery><ParticipantIndex>auto</ParticipantIndex>"
+    "<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex><Peers>"
+    '<Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
+)
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    os.environ["CYCLONEDDS_URI"] = LOOPBACK_CYCLONEDDS
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         # A suite started as a background job of a non-interactive shell inherits SIGINT
         # ignored, and so would every child it starts; the tests that press Ctrl-C on a child

@@ -1,25 +1,33 @@
-"""ROS 2 interop: publish and follow ``/clock`` over Zenoh in the rmw_zenoh wire format.
+"""ROS 2 interop: publish and follow ``/clock``, and subscribe to stamped topics, over DDS
+(ROS's default middleware, through Cyclone DDS) or Zenoh (rmw_zenoh's wire format).
 
-No ROS installation is needed: ROS 2's Zenoh middleware (rmw_zenoh) speaks a documented wire
-format that evclock writes and reads itself. Install the extra first::
+No ROS installation is needed: evclock puts on the wire what a ROS 2 node puts there. The
+middleware is chosen as a ROS node chooses it: ``rmw=`` (``"dds"``/``"zenoh"``), else
+``RMW_IMPLEMENTATION``, else DDS. Install the extra first::
 
     pip install 'evclock[ros2]'
 
 * :class:`Ros2ClockPublisher` publishes a simulation's time as ``/clock`` (``evclock run SIM
-  --ros2-clock``): ROS 2 nodes on rmw_zenoh with ``use_sim_time:=true`` follow it.
+  --ros2-clock``; ``--ros2`` adds ``/joint_states`` and ``/tf``): ROS 2 nodes with
+  ``use_sim_time:=true`` follow it.
 * :class:`Ros2ClockSource` is a time source that follows a ROS 2 ``/clock``
   (``EVCLOCK_CLOCK=ros2:///clock`` or ``evclock.run(main(), clock="ros2:///clock")``).
-* The wire format itself (key expressions, CDR payload, attachments, liveliness tokens) is
+* :func:`subscribe` turns a ROS 2 topic into a filter of :class:`~evclock.data.Stamped`
+  messages for evclock's synchronisers and caches.
+* The Zenoh wire format itself (key expressions, CDR payload, attachments, liveliness tokens) is
   exposed for tests and tools: :func:`clock_key_expr`, :func:`encode_clock`,
   :func:`decode_clock`, :func:`encode_attachment`, :data:`WIRE_FORMATS`.
 
-Importing this module does not import Zenoh; opening a publisher or a source does.
+Importing this module imports neither Zenoh nor Cyclone DDS; opening a publisher, a source or
+a subscription does.
 """
 
 from evclock._errors import Ros2MessageError
 from evclock.ros2._publisher import Ros2ClockPublisher
+from evclock.ros2._rmw import ENV_RMW_IMPLEMENTATION, MIDDLEWARES, RMW_IMPLEMENTATIONS
 from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN
 from evclock.ros2._source import DEFAULT_SILENCE_TIMEOUT, Ros2ClockSource
+from evclock.ros2._subscribe import Ros2Subscription, subscribe
 from evclock.ros2._url import source_from_url
 from evclock.ros2._wire import (
     CLOCK_DDS_TYPE,
@@ -51,11 +59,15 @@ __all__ = [
     "DEFAULT_LISTEN",
     "DEFAULT_SILENCE_TIMEOUT",
     "DEFAULT_WIRE_FORMAT",
+    "ENV_RMW_IMPLEMENTATION",
     "ENV_ROS_DOMAIN_ID",
+    "MIDDLEWARES",
+    "RMW_IMPLEMENTATIONS",
     "HUMBLE_TYPE_HASH",
     "WIRE_FORMATS",
     "Ros2ClockPublisher",
     "Ros2ClockSource",
+    "Ros2Subscription",
     "WireFormat",
     "clock_key_expr",
     "decode_clock",
@@ -66,6 +78,7 @@ __all__ = [
     "node_token",
     "resolve_domain_id",
     "source_from_url",
+    "subscribe",
 ]
 
 Ros2MessageError.__module__ = __name__

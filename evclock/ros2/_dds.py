@@ -30,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+import os
 import threading
 from collections.abc import Callable
 from typing import Any, Final
@@ -193,9 +194,16 @@ class DdsNode:
         self._readers: list[DdsReader] = []
         self._writers: list[DdsWriter] = []
         qos_mod = self._dds.qos
-        self._participant = self._dds.domain.DomainParticipant(
-            domain_id, qos=qos_mod.Qos(qos_mod.Policy.Userdata(ENCLAVE_USER_DATA))
-        )
+        try:
+            self._participant = self._dds.domain.DomainParticipant(
+                domain_id, qos=qos_mod.Qos(qos_mod.Policy.Userdata(ENCLAVE_USER_DATA))
+            )
+        except self._dds.core.DDSException as exc:
+            uri = os.environ.get("CYCLONEDDS_URI", "")
+            raise InvalidArgumentError(
+                f"Cyclone DDS could not join ROS domain {domain_id} ({exc}); check its "
+                f"configuration, CYCLONEDDS_URI={uri[:200]!r} (unset: Cyclone's defaults)"
+            ) from None
         try:
             self._publisher = self._dds.pub.Publisher(self._participant)
             self._subscriber = self._dds.sub.Subscriber(self._participant)

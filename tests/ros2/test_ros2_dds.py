@@ -539,3 +539,9 @@ def test_unreadable_clock_sample_ends_the_run(plain: DomainParticipant) -> None:
 
     with pytest.raises(Ros2MessageError, match="encapsulation 0003"):
         evclock.run(main(), source=source)
+
+
+def test_a_bad_cyclonedds_configuration_is_reported(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("CYCLONEDDS_URI", "<CycloneDDS><Domain><Nonsense/></Domain></CycloneDDS>")
+    with pytest.raises(InvalidArgumentError, match=r"could not join ROS domain .*<Nonsense/>"):
+        Ros2ClockPublisher()
