@@ -68,7 +68,7 @@ def main() -> None:
         subscriber = subscriber_session.declare_subscriber(
             clock_key_expr(0), zenoh.handlers.FifoChannel(1 << 20)
         )
-        publisher = Ros2ClockPublisher(connect=[endpoint], listen=[])
+        publisher = Ros2ClockPublisher(rmw="zenoh", connect=[endpoint], listen=[])
         best: dict[str, tuple[float, float, int]] = {}
         for _ in range(args.repeat):
             for name, pub in (("plain", None), ("with /clock", publisher)):

@@ -55,7 +55,25 @@ _JOIN_TIMEOUT: Final = 5.0
 
 class Ros2Subscription(SimpleFilter):
     """A ROS 2 topic as a filter of :class:`~evclock.data.Stamped` messages; see
-    :func:`subscribe`."""
+    :func:`subscribe`, which opens one inside the running program.
+
+    :param topic: the ROS topic (``/imu``).
+    :param msgtype: the message type as ROS names it (``sensor_msgs/msg/Imu``), stamped (with
+        a ``std_msgs/Header``) or ``tf2_msgs/msg/TFMessage`` (one ``Stamped`` per transform).
+    :param rmw: ``"dds"`` or ``"zenoh"`` (default: ``RMW_IMPLEMENTATION``, else DDS).
+    :param domain_id: the ROS domain id (default ``ROS_DOMAIN_ID``, else 0).
+    :param wire_format: the distribution spoken (``"jazzy"``, ``"humble"``...).
+    :param node_name: the node announced in the ROS graph (DDS).
+    :param reliable: ask for a reliable subscription (default best effort, fed by every
+        publisher).
+    :param queue_size: messages kept between the network and the loop (the oldest dropped).
+    :param clock_type: the clock domain of the stamps (default: the running clock's).
+    :param connect: Zenoh endpoints to connect to (Zenoh only; default rmw_zenoh's router).
+    :param listen: Zenoh endpoints accepting peers (Zenoh only).
+    :raises InvalidArgumentError: an unknown or unstamped type, a bad topic or option, Zenoh
+        endpoints on DDS.
+    :raises MissingExtraError: the ``ros2`` extra is missing.
+    """
 
     def __init__(
         self,
