@@ -55,8 +55,6 @@ ENCLAVE_USER_DATA: Final = b"enclave=/;"
 #: of the reader's status (wall ns): the thread also notices its close within that time.
 _TAKE_BATCH: Final = 64
 _WAIT_NS: Final = 200_000_000
-#: How many payload bytes a reader hands on at most (peer input; a Clock is 12 bytes).
-MAX_PAYLOAD: Final = 1 << 20
 _JOIN_TIMEOUT: Final = 5.0
 #: DDS QoS policy ids (the DDS specification's numbering, as Cyclone reports last_policy_id).
 _POLICY_NAMES: Final = {
@@ -472,7 +470,9 @@ class DdsReader:
                     raise Ros2MessageError(f"taking {self.topic} samples failed (code {samples})")
                 for data, info in samples:
                     if info.valid_data:
-                        self._deliver(bytes(data[:MAX_PAYLOAD]))
+                        # Whole samples (Cyclone DDS bounds their size by its configuration);
+                        # evclock's decoders read them within their length.
+                        self._deliver(bytes(data))
                 self._report_incompatible()
         except BaseException as exc:  # the follower turns it into ClockLostError
             if not self.closed:
