@@ -208,7 +208,8 @@ class DdsNode:
             self._discovery = self._raw_writer(DISCOVERY_TOPIC, DISCOVERY_TYPE, DISCOVERY_QOS)
             self._announce()
         except BaseException:
-            self._participant = None
+            participant, self._participant = self._participant, None
+            _delete(participant)
             raise
 
     @property
