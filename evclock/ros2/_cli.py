@@ -47,7 +47,7 @@ Ros2Flag = Annotated[
     bool,
     typer.Option(
         "--ros2",
-        help="Publish /clock, /joint_states and /tf on sim time over DDS (ros2 extra).",
+        help="Publish /clock, /joint_states, /tf and /tf_static on sim time over DDS (ros2 extra).",
     ),
 ]
 Rmw = Annotated[

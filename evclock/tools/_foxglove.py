@@ -448,6 +448,33 @@ class World:
             )
         return {"transforms": transforms}
 
+    def fixed_transforms(self, time_ns: int) -> dict[str, Any]:
+        """A ``foxglove.FrameTransforms`` message: each link on a fixed joint in its parent
+        link's frame, which never changes (what ROS puts on ``/tf_static``)."""
+        p, cid = self._p, self._client
+        frames = {(link.body, link.index): link for link in self.links}
+        stamped = stamp(time_ns)
+        transforms = []
+        for link in self.links:
+            if link.index < 0:
+                continue
+            info = p.getJointInfo(link.body, link.index, physicsClientId=cid)
+            if info[2] != p.JOINT_FIXED:
+                continue
+            parent = frames[(link.body, int(info[16]))]
+            inverse = p.invertTransform(*self._link_pose(parent))
+            position, orientation = p.multiplyTransforms(*inverse, *self._link_pose(link))
+            transforms.append(
+                {
+                    "timestamp": stamped,
+                    "parent_frame_id": parent.frame,
+                    "child_frame_id": link.frame,
+                    "translation": vector3(position),
+                    "rotation": quaternion_xyzw(orientation),
+                }
+            )
+        return {"transforms": transforms}
+
     def scene(self, time_ns: int) -> dict[str, Any]:
         """A ``foxglove.SceneUpdate`` message: one entity per link with its visual shapes,
         locked to the link's frame (meshes embedded, so a recording is self-contained)."""

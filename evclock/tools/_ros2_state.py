@@ -2,12 +2,16 @@
 
 Besides ``/clock`` (:mod:`evclock.ros2`), every published step writes ``sensor_msgs/JointState``
 on ``/joint_states`` (each moving joint's position, velocity and effort) and
-``tf2_msgs/TFMessage`` on ``/tf`` (every link frame in the ``world`` frame), read by name from
+``tf2_msgs/TFMessage`` on ``/tf`` (every link frame that can move, in the ``world`` frame);
+``/tf_static`` holds, once and transient-local, the frames that cannot (a link on a fixed
+joint in its parent link's frame, a MuJoCo body without joints in its parent's), as
+robot_state_publisher splits them; all read by name from
 the world with the recorder's readers (PyBullet's :class:`~evclock.tools._foxglove.World`,
 MuJoCo's :class:`~evclock.tools._world_mujoco.MuJoCoWorldReader`), so RViz2, ``ros2 topic echo``
 and ``ros2 bag record`` show the robot on sim time. The messages are rosbags' classes of the
 distribution spoken, serialised by rosbags; the topics' QoS are those of ROS's own publishers:
-``/tf`` as tf2_ros' ``DynamicBroadcasterQoS`` (reliable, volatile, keep last 100) and
+``/tf`` as tf2_ros' ``DynamicBroadcasterQoS`` (reliable, volatile, keep last 100),
+``/tf_static`` as its ``StaticBroadcasterQoS`` (reliable, transient local, keep last 1) and
 ``/joint_states`` as joint_state_publisher's (reliable, volatile, keep last 10).
 """
 
@@ -28,7 +32,10 @@ if TYPE_CHECKING:
 JOINT_STATE: Final = "sensor_msgs/msg/JointState"
 TF_MESSAGE: Final = "tf2_msgs/msg/TFMessage"
 TF_QOS: Final = DdsQos(reliable=True, transient_local=False, depth=100)
-"""tf2_ros ``DynamicBroadcasterQoS`` (``tf2_ros/qos.hpp``): reliable, volatile, keep last 100."""
+"""tf2_ros ``DynamicBroadcasterQoS`` (``tf2_ros/include/tf2_ros/qos.hpp``): reliable, volatile,
+keep last 100."""
+TF_STATIC_QOS: Final = DdsQos(reliable=True, transient_local=True, depth=1)
+"""tf2_ros ``StaticBroadcasterQoS`` (``qos.hpp``): reliable, transient local, keep last 1."""
 JOINT_STATES_QOS: Final = DdsQos(reliable=True, transient_local=False, depth=10)
 """joint_state_publisher's and robot_state_publisher's ``/joint_states``: reliable, depth 10."""
 
@@ -47,6 +54,7 @@ class RobotStatePublisher:
         try:
             self._joint_states = self._node.writer("/joint_states", JOINT_STATE, JOINT_STATES_QOS)
             self._tf = self._node.writer("/tf", TF_MESSAGE, TF_QOS)
+            self._tf_static = self._node.writer("/tf_static", TF_MESSAGE, TF_STATIC_QOS)
         except BaseException:
             self._node.close()
             raise
@@ -64,6 +72,7 @@ class RobotStatePublisher:
             )
         }
         self.published = 0
+        self._static: frozenset[str] | None = None  # the child frames on /tf_static
 
     def _header(self, time_ns: int, frame_id: str) -> Any:
         sec, nanosec = divmod(time_ns, 1_000_000_000)
@@ -88,10 +97,20 @@ class RobotStatePublisher:
         )
 
     def tf(self, time_ns: int) -> Any:
-        """The ``tf2_msgs/TFMessage`` of every link frame now, stamped ``time_ns``."""
+        """The ``tf2_msgs/TFMessage`` of every link frame that can move, stamped ``time_ns``."""
+        static = self._static or frozenset()
+        frames = self._reader.transforms(time_ns)["transforms"]
+        moving = [f for f in frames if f["child_frame_id"] not in static]
+        return self._tf_message(moving, time_ns)
+
+    def tf_static(self, time_ns: int) -> Any:
+        """The ``tf2_msgs/TFMessage`` of the frames that never move, stamped ``time_ns``."""
+        return self._tf_message(self._reader.fixed_transforms(time_ns)["transforms"], time_ns)
+
+    def _tf_message(self, frames: list[dict[str, Any]], time_ns: int) -> Any:
         cls = self._cls
         transforms = []
-        for frame in self._reader.transforms(time_ns)["transforms"]:
+        for frame in frames:
             t, r = frame["translation"], frame["rotation"]
             transforms.append(
                 cls["geometry_msgs/msg/TransformStamped"](
@@ -108,7 +127,13 @@ class RobotStatePublisher:
         return cls[TF_MESSAGE](transforms=transforms)
 
     def publish(self, time_ns: int) -> None:
-        """Write the joint states and the link frames at ``time_ns``."""
+        """Write the joint states and the link frames at ``time_ns`` (the first time also the
+        static frames)."""
+        if self._static is None:
+            static = self.tf_static(time_ns)
+            self._static = frozenset(t.child_frame_id for t in static.transforms)
+            if static.transforms:  # as tf2_ros' static broadcaster: nothing static, no message
+                self._tf_static.write(serialize(static, TF_MESSAGE, self._wire))
         self._joint_states.write(serialize(self.joint_state(time_ns), JOINT_STATE, self._wire))
         self._tf.write(serialize(self.tf(time_ns), TF_MESSAGE, self._wire))
         self.published += 1

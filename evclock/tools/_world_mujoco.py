@@ -166,6 +166,29 @@ class MuJoCoWorldReader:
             ]
         }
 
+    def fixed_transforms(self, time_ns: int) -> dict[str, Any]:
+        """A ``foxglove.FrameTransforms`` message: each body without joints (and not a mocap
+        body) in its parent body's frame (the world frame under the world body): the model's
+        ``body_pos``/``body_quat``, which never change (what ROS puts on ``/tf_static``)."""
+        model = self._model
+        names = dict(self._frames)
+        stamped = stamp(time_ns)
+        transforms = []
+        for body, frame in self._frames:
+            if int(model.body_jntnum[body]) != 0 or int(model.body_mocapid[body]) != -1:
+                continue
+            parent = int(model.body_parentid[body])
+            transforms.append(
+                {
+                    "timestamp": stamped,
+                    "parent_frame_id": WORLD_FRAME if parent == 0 else names[parent],
+                    "child_frame_id": frame,
+                    "translation": vector3(model.body_pos[body]),
+                    "rotation": _wxyz(model.body_quat[body]),
+                }
+            )
+        return {"transforms": transforms}
+
     def scene(self, time_ns: int) -> dict[str, Any]:
         """A ``foxglove.SceneUpdate`` message: one entity per body with its visible geoms,
         locked to the body's frame (the world body's geoms in the world frame; meshes

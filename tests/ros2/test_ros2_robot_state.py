@@ -80,6 +80,12 @@ TFMessage_ = make_idl_struct(
     "TFMessage_", "tf2_msgs::msg::dds_::TFMessage_", {"transforms": t.sequence[TransformStamped_]}
 )
 RELIABLE = Qos(Policy.Reliability.Reliable(max_blocking_time=100_000_000), Policy.History.KeepAll)
+#: tf2_ros' StaticListenerQoS: a late joiner still gets the static frames.
+STATIC = Qos(
+    Policy.Reliability.Reliable(max_blocking_time=100_000_000),
+    Policy.Durability.TransientLocal,
+    Policy.History.KeepLast(100),
+)
 
 
 @pytest.fixture
@@ -106,6 +112,7 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     pytest.importorskip("pybullet" if engine == "pybullet" else "mujoco")
     joints = DataReader(plain, Topic(plain, "rt/joint_states", JointState_), qos=RELIABLE)
     tf = DataReader(plain, Topic(plain, "rt/tf", TFMessage_), qos=RELIABLE)
+    tf_static = DataReader(plain, Topic(plain, "rt/tf_static", TFMessage_), qos=STATIC)
     run = subprocess.Popen(
         [*EVCLOCK_RUN, "kuka", "--ros2", "--engine", engine, "--until", "0.25"],
         cwd=ROOT,
@@ -149,8 +156,23 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     assert stamps[-1] <= S // 4
     for message in frames:
         assert message.transforms
-        assert {f.header.frame_id for f in message.transforms} == {"world"}
+        assert {f.header.frame_id for f in message.transforms} <= {"world"}
         assert len({stamp_ns(f.header) for f in message.transforms}) == 1
+    # The frames that cannot move are on /tf_static (once), the others on /tf: MuJoCo's KUKA
+    # base is a body without joints under the world body; PyBullet's arm has no fixed joint.
+    statics = [m for m in tf_static.take(16) if isinstance(m, TFMessage_)]
+    moving = {f.child_frame_id for m in frames for f in m.transforms}
+    if engine == "mujoco":
+        (static,) = statics
+        assert [(f.header.frame_id, f.child_frame_id) for f in static.transforms] == [
+            ("world", "lbr_iiwa/lbr_iiwa_link_0")
+        ]
+        assert stamp_ns(static.transforms[0].header) == 0
+    else:
+        assert statics == []
+    static_frames = {f.child_frame_id for m in statics for f in m.transforms}
+    assert not moving & static_frames
+    assert moving | static_frames == {f"lbr_iiwa/lbr_iiwa_link_{k}" for k in range(8)}
     # The payload layout is rosbags' (the message definitions of ROS 2 Jazzy).
     store = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
     last = states[-1]
@@ -158,3 +180,36 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     assert list(rebuilt.name) == list(last.name)
     assert list(rebuilt.position) == list(last.position)
     assert bytes(store.serialize_cdr(rebuilt, "sensor_msgs/msg/JointState")) == last.serialize()
+
+
+def test_a_fixed_joint_is_a_static_frame_in_its_parents_frame() -> None:
+    pybullet = pytest.importorskip("pybullet")
+    from evclock.tools._foxglove import World
+
+    client = pybullet.connect(pybullet.DIRECT)
+    try:
+        box = pybullet.createCollisionShape(pybullet.GEOM_BOX, halfExtents=[0.1] * 3)
+        pybullet.createMultiBody(
+            baseMass=1.0,
+            baseCollisionShapeIndex=box,
+            basePosition=[1.0, 2.0, 3.0],
+            linkMasses=[0.5],
+            linkCollisionShapeIndices=[box],
+            linkVisualShapeIndices=[-1],
+            linkPositions=[[0.0, 0.0, 0.5]],
+            linkOrientations=[[0, 0, 0, 1]],
+            linkInertialFramePositions=[[0, 0, 0]],
+            linkInertialFrameOrientations=[[0, 0, 0, 1]],
+            linkParentIndices=[0],
+            linkJointTypes=[pybullet.JOINT_FIXED],
+            linkJointAxis=[[0, 0, 1]],
+            physicsClientId=client,
+        )
+        world = World(client, pybullet)
+        base, link = (frame.frame for frame in world.links)
+        (fixed,) = world.fixed_transforms(7)["transforms"]
+    finally:
+        pybullet.disconnect(client)
+    assert (fixed["parent_frame_id"], fixed["child_frame_id"]) == (base, link)
+    assert fixed["translation"] == pytest.approx({"x": 0.0, "y": 0.0, "z": 0.5}, abs=1e-9)
+    assert fixed["rotation"] == pytest.approx({"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}, abs=1e-9)
