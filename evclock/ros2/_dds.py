@@ -56,7 +56,7 @@ ENCLAVE_USER_DATA: Final = b"enclave=/;"
 _TAKE_BATCH: Final = 64
 _WAIT_NS: Final = 200_000_000
 _JOIN_TIMEOUT: Final = 5.0
-#: DDS QoS policy ids (the DDS specification's numbering, as Cyclone reports last_policy_id).
+#: QoS policy ids as Cyclone DDS numbers them (``dds_qos_policy_id_t``) in last_policy_id.
 _POLICY_NAMES: Final = {
     2: "DURABILITY",
     4: "DEADLINE",
@@ -65,7 +65,8 @@ _POLICY_NAMES: Final = {
     8: "LIVELINESS",
     11: "RELIABILITY",
     12: "DESTINATION_ORDER",
-    23: "DATA_REPRESENTATION",
+    24: "TYPE_CONSISTENCY_ENFORCEMENT",
+    25: "DATA_REPRESENTATION",
 }
 
 

@@ -423,10 +423,15 @@ class Ros2ClockSource(TimeSource):
             if self._error is not None:
                 raise self._error
             if timeout is not None and waited >= timeout:
+                reach = (
+                    "found by DDS discovery (CYCLONEDDS_URI)"
+                    if self._middleware == "dds"
+                    else "reachable through those endpoints"
+                )
                 raise ClockLostError(
                     f"no {self._topic} message arrived within startup_timeout={timeout:g} s "
                     f"from {self.describe()}; is the simulator publishing, in domain "
-                    f"{self._domain_id}, reachable through those endpoints?"
+                    f"{self._domain_id}, {reach}?"
                 )
             logger.warning(
                 "still waiting for the first %s message after %.1f s (%s)",

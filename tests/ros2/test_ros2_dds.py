@@ -545,3 +545,80 @@ def test_a_bad_cyclonedds_configuration_is_reported(monkeypatch: pytest.MonkeyPa
     monkeypatch.setenv("CYCLONEDDS_URI", "<CycloneDDS><Domain><Nonsense/></Domain></CycloneDDS>")
     with pytest.raises(InvalidArgumentError, match=r"could not join ROS domain .*<Nonsense/>"):
         Ros2ClockPublisher()
+
+
+def test_a_publisher_the_follower_cannot_accept_is_named_when_it_gives_up(
+    plain: DomainParticipant,
+) -> None:
+    xcdr2_only = Qos(
+        Policy.Reliability.BestEffort,
+        Policy.History.KeepLast(1),
+        Policy.DataRepresentation(use_xcdrv2_representation=True),
+    )
+    feed = PlainClock(plain, xcdr2_only)  # rmw_cyclonedds_cpp reads XCDR1 only, as evclock
+    stop = threading.Event()
+
+    def repeat() -> None:
+        while not stop.wait(0.01):
+            feed(1 * S)
+
+    feeder = threading.Thread(target=repeat, daemon=True)
+    feeder.start()
+    try:
+        with pytest.raises(ClockLostError) as lost:
+            Ros2ClockSource(startup_timeout=1.0)
+    finally:
+        stop.set()
+        feeder.join(WAIT)
+    message = str(lost.value)
+    assert "no /clock message arrived within startup_timeout=1 s" in message
+    assert "publisher(s) of /clock offered a QoS this subscription" in message
+    assert "DATA_REPRESENTATION" in message
+
+
+def test_humble_publisher_announces_24_byte_gids_without_type_hashes(
+    plain: DomainParticipant,
+) -> None:
+    gid24 = make_idl_struct(
+        "Gid24_", "rmw_dds_common::msg::dds_::Gid_", {"data": t.array[t.uint8, 24]}
+    )
+    node24 = make_idl_struct(
+        "NodeEntitiesInfo24_",
+        "rmw_dds_common::msg::dds_::NodeEntitiesInfo_",
+        {
+            "node_namespace": t.bounded_str[256],
+            "node_name": t.bounded_str[256],
+            "reader_gid_seq": t.sequence[gid24],
+            "writer_gid_seq": t.sequence[gid24],
+        },
+    )
+    info24 = make_idl_struct(
+        "ParticipantEntitiesInfo24_",
+        "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_",
+        {"gid": gid24, "node_entities_info_seq": t.sequence[node24]},
+    )
+    publications = BuiltinDataReader(plain, BuiltinTopicDcpsPublication)
+    graph = DataReader(
+        plain,
+        Topic(plain, "ros_discovery_info", info24),
+        qos=Qos(
+            Policy.Reliability.Reliable(max_blocking_time=100_000_000),
+            Policy.Durability.TransientLocal,
+            Policy.History.KeepLast(1),
+        ),
+    )
+    with Ros2ClockPublisher(wire_format="humble") as publisher:
+        found: list[Any] = []
+
+        def discovered() -> bool:
+            found.extend(p for p in publications.take(64) if p.topic_name == "rt/clock")
+            return bool(found)
+
+        wait_for(discovered, "the Humble writer")
+        assert found[0].qos[Policy.Userdata] is None  # Humble has no type hashes
+        infos: list[Any] = []
+        wait_for(lambda: bool(infos.extend(take_all(graph)) or infos), "the announcement")
+        (node,) = infos[-1].node_entities_info_seq
+        assert [bytes(g.data) for g in node.writer_gid_seq] == [publisher.gid]
+        assert len(publisher.gid) == 24
+        assert publisher.gid == found[0].key.bytes + bytes(8)
