@@ -21,6 +21,7 @@ exits), and the failures before it would otherwise be lost with the summary.
 from __future__ import annotations
 
 import importlib.util
+import itertools
 import os
 import signal
 import sys
@@ -49,6 +50,28 @@ LOOPBACK_CYCLONEDDS = (
     "<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex><Peers>"
     '<Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
 )
+
+
+_dds_domains = itertools.count()
+
+
+@pytest.fixture
+def loopback_dds(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> int:
+    """A ROS domain of this test's own, on a loopback-only Cyclone DDS configuration
+    (``CYCLONEDDS_URI`` names it; ``ROS_DOMAIN_ID`` holds the domain; DDS, ROS's default
+    middleware, is chosen). Concurrent workers of one session get disjoint bands of domains,
+    and concurrent sessions (on one machine) different offsets."""
+    config = tmp_path / "cyclonedds.xml"
+    config.write_text(LOOPBACK_CYCLONEDDS)
+    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
+    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+    index = int(worker[2:]) if worker[2:].isdigit() else 0
+    session = os.getppid() if "PYTEST_XDIST_WORKER" in os.environ else os.getpid()
+    band = index * 50 + next(_dds_domains) % 50
+    domain = 20 + (session * 37 + band) % 210  # domains 20..229: Cyclone's ports fit
+    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
+    return domain
 
 
 def pytest_configure(config: pytest.Config) -> None:

@@ -2,7 +2,8 @@
 
 Every test runs in a DDS domain of its own (``ROS_DOMAIN_ID``) with ``CYCLONEDDS_URI`` naming a
 configuration that binds the loopback interface, disables multicast and finds peers by unicast
-on 127.0.0.1. The other side of each exchange is a plain Cyclone DDS participant of the test,
+on 127.0.0.1 (``loopback_dds`` in ``tests/conftest.py``). The other side of each exchange is a
+plain Cyclone DDS participant of the test,
 with the ROS type names written here from the message definitions (what a node on
 rmw_cyclonedds_cpp announces), or evclock in another process. Every wait is bounded.
 """
@@ -11,7 +12,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import itertools
 import os
 import subprocess
 import sys
@@ -46,14 +46,6 @@ from cyclonedds.topic import Topic  # noqa: E402
 WAIT = 10.0  # wall seconds: a guard against hangs, never a performance assertion
 S = 1_000_000_000
 ROOT = Path(__file__).resolve().parents[2]
-#: The loopback-only configuration: no multicast, unicast discovery of local participants.
-LOOPBACK_CONFIG = """<CycloneDDS xmlns="https://cdds.io/config"><Domain id="any">
-<General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
-<AllowMulticast>false</AllowMulticast></General>
-<Discovery><ParticipantIndex>auto</ParticipantIndex>
-<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex>
-<Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>"""
-_domains = itertools.count()
 
 
 # The ROS types as rosidl names them for DDS, written from the .msg definitions (built with
@@ -87,15 +79,9 @@ RELIABLE = Qos(
 
 
 @pytest.fixture(autouse=True)
-def loopback_domain(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> int:
-    """A test-unique ROS domain on a loopback-only Cyclone DDS configuration."""
-    config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG)
-    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
-    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)  # DDS: ROS's default
-    domain = 100 + (os.getpid() * 7 + next(_domains)) % 120
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
-    return domain
+def loopback_domain(loopback_dds: int) -> int:
+    """Every test here: its own ROS domain, DDS on loopback only (tests/conftest.py)."""
+    return loopback_dds
 
 
 def wait_for(condition: Callable[[], bool], what: str) -> None:
@@ -410,8 +396,10 @@ def test_backward_clock_is_a_jump(plain: DomainParticipant) -> None:
     assert (jump.before, jump.after) == (Time(10), Time(3))
 
 
-def test_domains_are_isolated(plain: DomainParticipant, loopback_domain: int) -> None:
-    other = DomainParticipant((loopback_domain + 1) % 233)
+def test_domains_are_isolated(plain: DomainParticipant) -> None:
+    # A domain no other test uses (tests/conftest.py hands out 20..229), one per worker.
+    worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
+    other = DomainParticipant(5 + (int(worker) if worker.isdigit() else 0) % 15)
     try:
         feed = PlainClock(other)
         stop = threading.Event()

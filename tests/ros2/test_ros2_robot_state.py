@@ -2,13 +2,11 @@
 
 A plain Cyclone DDS participant of the test reads the topics with ROS's type names, written
 here from the message definitions; every wait is bounded. Loopback only, a test-unique domain
-(see ``test_ros2_dds.py``).
+(``loopback_dds`` in ``tests/conftest.py``).
 """
 
 from __future__ import annotations
 
-import itertools
-import os
 import subprocess
 import sys
 import time
@@ -31,13 +29,6 @@ from cyclonedds.topic import Topic  # noqa: E402
 S = 1_000_000_000
 EVCLOCK_RUN = (sys.executable, "-m", "evclock", "run")
 ROOT = Path(__file__).resolve().parents[2]
-LOOPBACK_CONFIG = """<CycloneDDS xmlns="https://cdds.io/config"><Domain id="any">
-<General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
-<AllowMulticast>false</AllowMulticast></General>
-<Discovery><ParticipantIndex>auto</ParticipantIndex>
-<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex>
-<Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>"""
-_domains = itertools.count()
 
 Time_ = make_idl_struct(
     "Time_", "builtin_interfaces::msg::dds_::Time_", {"sec": t.int32, "nanosec": t.uint32}
@@ -89,14 +80,9 @@ STATIC = Qos(
 
 
 @pytest.fixture
-def plain(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Iterator[DomainParticipant]:
-    config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG)
-    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
-    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
-    domain = 100 + (os.getpid() * 11 + 60 + next(_domains)) % 120
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
-    participant = DomainParticipant(domain)
+def plain(loopback_dds: int) -> Iterator[DomainParticipant]:
+    """The test's own participant, in its own domain on loopback only (tests/conftest.py)."""
+    participant = DomainParticipant(loopback_dds)
     yield participant
     participant.__del__()
 

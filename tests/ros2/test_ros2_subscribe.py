@@ -7,12 +7,9 @@ The publishers write what a ROS 2 node writes: rosbags' CDR of the message (the 
 from __future__ import annotations
 
 import asyncio
-import itertools
 import json
-import os
 import tempfile
 from collections.abc import Iterator
-from pathlib import Path
 from typing import Any
 
 import pytest
@@ -30,25 +27,13 @@ from evclock.ros2._wire import WIRE_FORMATS  # noqa: E402
 
 WAIT = 10.0  # wall seconds: a guard against hangs, never a performance assertion
 STORE = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
-LOOPBACK_CONFIG = """<CycloneDDS xmlns="https://cdds.io/config"><Domain id="any">
-<General><Interfaces><NetworkInterface address="127.0.0.1"/></Interfaces>
-<AllowMulticast>false</AllowMulticast></General>
-<Discovery><ParticipantIndex>auto</ParticipantIndex>
-<MaxAutoParticipantIndex>40</MaxAutoParticipantIndex>
-<Peers><Peer address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>"""
-_domains = itertools.count()
 RELIABLE = DdsQos(reliable=True, transient_local=False, depth=10)
 
 
 @pytest.fixture(autouse=True)
-def loopback_domain(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> int:
-    config = tmp_path / "cyclonedds.xml"
-    config.write_text(LOOPBACK_CONFIG)
-    monkeypatch.setenv("CYCLONEDDS_URI", config.as_uri())
-    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
-    domain = 100 + (os.getpid() * 13 + 90 + next(_domains)) % 120
-    monkeypatch.setenv("ROS_DOMAIN_ID", str(domain))
-    return domain
+def loopback_domain(loopback_dds: int) -> int:
+    """Every test here: its own ROS domain, DDS on loopback only (tests/conftest.py)."""
+    return loopback_dds
 
 
 @pytest.fixture
