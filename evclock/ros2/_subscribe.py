@@ -11,7 +11,7 @@ not delivered.
 
 DDS: a Cyclone DDS reader of ``rt/<topic>`` with ROS's type name, announced in the ROS graph.
 Zenoh: a subscriber of rmw_zenoh's key ``<domain>/<topic>/<type>/<hash>`` (Humble's or the
-distribution's hash), without graph tokens.
+distribution's hash), with the liveliness tokens of the node and its subscription.
 """
 
 from __future__ import annotations
@@ -39,6 +39,9 @@ from evclock.ros2._wire import (
     HUMBLE_TYPE_HASH,
     WireFormat,
     check_node_name,
+    endpoint_token,
+    node_token,
+    qos_field,
     resolve_domain_id,
     resolve_topic,
 )
@@ -125,6 +128,9 @@ class Ros2Subscription(SimpleFilter):
         self._closed = False
         self._dds: Any = None
         self._session: Any = None
+        self._tokens: list[Any] = []
+        self.liveliness_tokens: tuple[str, ...] = ()
+        """The node's and the subscription's rmw_zenoh liveliness tokens (Zenoh; else empty)."""
         if self.middleware == "dds":
             from evclock.ros2._dds import DdsNode, DdsQos, check_no_zenoh_endpoints
 
@@ -140,14 +146,45 @@ class Ros2Subscription(SimpleFilter):
             self._open_zenoh(
                 check_endpoints(DEFAULT_CONNECT if connect is None else connect, "connect"),
                 check_endpoints(DEFAULT_LISTEN if listen is None else listen, "listen"),
+                node_name,
+                reliable,
+                queue_size,
             )
 
-    def _open_zenoh(self, connect: Sequence[str], listen: Sequence[str]) -> None:
+    def _open_zenoh(
+        self,
+        connect: Sequence[str],
+        listen: Sequence[str],
+        node_name: str,
+        reliable: bool,
+        depth: int,
+    ) -> None:
         zenoh = require("zenoh")
-        hashes = {type_hash(self.msgtype, self._wire) or HUMBLE_TYPE_HASH, HUMBLE_TYPE_HASH}
-        key = f"{self._domain_id}/{self.topic[1:]}/{dds_type_name(self.msgtype)}/*"
+        own_hash = type_hash(self.msgtype, self._wire)
+        hashes = {own_hash or HUMBLE_TYPE_HASH, HUMBLE_TYPE_HASH}
+        type_name = dds_type_name(self.msgtype)
+        key = f"{self._domain_id}/{self.topic[1:]}/{type_name}/*"
         self._session = open_session(connect, listen)
         try:
+            zid = str(self._session.zid())
+            self.liveliness_tokens = (
+                node_token(self._domain_id, zid, 0, node_name),
+                endpoint_token(
+                    "MS",
+                    self._domain_id,
+                    zid,
+                    0,
+                    1,
+                    node_name,
+                    self.topic,
+                    self._wire,
+                    type_name=type_name,
+                    type_hash=own_hash,
+                    qos=qos_field(reliable=reliable, transient_local=False, depth=depth),
+                ),
+            )
+            liveliness = self._session.liveliness()
+            self._tokens = [liveliness.declare_token(t) for t in self.liveliness_tokens]
             self._subscriber = self._session.declare_subscriber(
                 key, zenoh.handlers.RingChannel(self._inbox.maxlen or DEFAULT_QUEUE_SIZE)
             )
@@ -223,6 +260,8 @@ class Ros2Subscription(SimpleFilter):
         if self._dds is not None:
             self._dds.close()
         elif self._session is not None:
+            for token in self._tokens:
+                token.undeclare()
             self._subscriber.undeclare()
             self._session.close()
             self._reader.join(_JOIN_TIMEOUT)

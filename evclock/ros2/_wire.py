@@ -316,8 +316,13 @@ def endpoint_token(
     node_name: str,
     topic: str,
     wire: WireFormat | None = None,
+    *,
+    type_name: str = CLOCK_DDS_TYPE,
+    type_hash: str | None = None,
+    qos: str = CLOCK_QOS,
 ) -> str:
-    """The liveliness token of a Clock publisher (``MP``) or subscription (``MS``).
+    """The liveliness token of a publisher (``MP``) or subscription (``MS``), of a Clock topic
+    unless ``type_name``, ``type_hash`` and ``qos`` say otherwise.
 
     :param kind: ``"MP"`` for a publisher, ``"MS"`` for a subscription.
     :param domain_id: the ROS domain id.
@@ -327,15 +332,28 @@ def endpoint_token(
     :param node_name: the name of the node the endpoint belongs to.
     :param topic: the Clock topic.
     :param wire: the wire format (default: Jazzy's).
+    :param type_name: the DDS type name (default Clock's).
+    :param type_hash: the type's RIHS01 hash (default: the wire format's Clock hash, or
+        Humble's ``TypeHashNotSupported``).
+    :param qos: the QoS field (default :data:`CLOCK_QOS`; see :func:`qos_field`).
     :returns: the token's key expression.
     :raises InvalidArgumentError: ``topic`` is not a valid ROS topic name.
     :raises InvalidTypeError: ``topic`` is not a string.
     """
     fmt = wire or WIRE_FORMATS[DEFAULT_WIRE_FORMAT]
+    hashed = fmt.type_hash if type_hash is None or fmt.type_hash == HUMBLE_TYPE_HASH else type_hash
     return (
         f"@ros2_lv/{domain_id}/{zid}/{node_id}/{entity_id}/{kind}/%/%/{node_name}/"
-        f"{_mangle(resolve_topic(topic))}/{CLOCK_DDS_TYPE}/{fmt.type_hash}/{CLOCK_QOS}"
+        f"{_mangle(resolve_topic(topic))}/{type_name}/{hashed}/{qos}"
     )
+
+
+def qos_field(*, reliable: bool, transient_local: bool, depth: int) -> str:
+    """A liveliness token's QoS field for KEEP_LAST ``depth`` with this reliability and
+    durability, the rest default (see :data:`CLOCK_QOS`): reliability and durability are
+    always written (their defaults changed between releases), history left to KEEP_LAST,
+    the default of every release."""
+    return f"{1 if reliable else 2}:{1 if transient_local else 2}:,{depth}:,:,:,,"
 
 
 def entity_gid(token: str) -> bytes:

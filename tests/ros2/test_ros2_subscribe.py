@@ -290,6 +290,32 @@ def test_zenoh_topic_arrives_as_stamped_messages(zenoh_peer: tuple[Any, str]) ->
     assert stamped.value.pose.position.x == 2.5
 
 
+def test_zenoh_subscription_is_in_the_ros_graph(zenoh_peer: tuple[Any, str]) -> None:
+    session, endpoint = zenoh_peer
+
+    def tokens() -> list[str]:
+        return sorted(str(r.ok.key_expr) for r in session.liveliness().get("@ros2_lv/**"))
+
+    async def main() -> tuple[tuple[str, ...], list[str]]:
+        sub = subscribe("/pose", POSE, domain_id=0, connect=[endpoint], listen=[], queue_size=5)
+        async with asyncio.timeout(WAIT):
+            seen = tokens()
+            while len(seen) < 2:  # until the tokens reached the peer
+                await asyncio.sleep(0.02)
+                seen = tokens()
+        sub.close()
+        return sub.liveliness_tokens, seen
+
+    declared, seen = run_on_wall(main())
+    assert sorted(declared) == seen
+    node, endpoint_token = declared
+    assert node.endswith("/NN/%/%/evclock_listener")
+    assert endpoint_token.endswith(
+        f"/MS/%/%/evclock_listener/%pose/geometry_msgs::msg::dds_::PoseStamped_/"
+        f"{STORE.hash_rihs01(POSE)}/2:2:,5:,:,:,,"
+    )
+
+
 def test_undecodable_message_is_counted_not_delivered(
     zenoh_peer: tuple[Any, str], caplog: pytest.LogCaptureFixture
 ) -> None:

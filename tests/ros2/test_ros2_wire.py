@@ -422,6 +422,19 @@ def test_every_release_reads_the_clock_qos_as_clockqos(release: str) -> None:
     assert read_qos(CLOCK_QOS, release) == CLOCK_QOS_PROFILE
 
 
+@pytest.mark.parametrize("release", sorted(RMW_ZENOH_RELEASES))
+@pytest.mark.parametrize(("reliable", "transient_local"), [(True, False), (False, True)])
+def test_every_release_reads_other_qos_fields_as_written(
+    release: str, reliable: bool, transient_local: bool
+) -> None:
+    from evclock.ros2._wire import qos_field
+
+    read = read_qos(qos_field(reliable=reliable, transient_local=transient_local, depth=7), release)
+    assert read["reliability"] == (1 if reliable else 2)
+    assert read["durability"] == (_TL if transient_local else _VOLATILE)
+    assert (read["history"], read["depth"]) == (1, 7)  # KEEP_LAST 7
+
+
 @pytest.mark.parametrize(
     ("release", "native"),
     [
