@@ -63,7 +63,9 @@ _NAME_SEGMENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 @dataclasses.dataclass(frozen=True)
 class WireFormat:
-    """One rmw_zenoh_cpp wire variant: how the type hash and the attachment are written.
+    """One distribution's wire variant: on Zenoh, how rmw_zenoh_cpp writes the type hash and
+    the attachment; on DDS, only the distribution counts (Humble: no type hashes, 24-byte
+    graph GIDs; the others: RIHS01 hashes, 16-byte GIDs).
 
     :ivar name: the variant's name (``"jazzy"``, ``"humble"``).
     :ivar type_hash: the type-hash segment of key expressions and liveliness tokens.

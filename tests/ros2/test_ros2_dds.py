@@ -3,9 +3,9 @@
 Every test runs in a DDS domain of its own (``ROS_DOMAIN_ID``) with ``CYCLONEDDS_URI`` naming a
 configuration that binds the loopback interface, disables multicast and finds peers by unicast
 on 127.0.0.1 (``loopback_dds`` in ``tests/conftest.py``). The other side of each exchange is a
-plain Cyclone DDS participant of the test,
-with the ROS type names written here from the message definitions (what a node on
-rmw_cyclonedds_cpp announces), or evclock in another process. Every wait is bounded.
+plain Cyclone DDS participant of the test, with the ROS type names written here from the
+message definitions (what a node on rmw_cyclonedds_cpp announces), or evclock in another
+process. Every wait is bounded.
 """
 
 from __future__ import annotations
