@@ -8,7 +8,7 @@ middleware is chosen as a ROS node chooses it: ``rmw=`` (``"dds"``/``"zenoh"``),
     pip install 'evclock[ros2]'
 
 * :class:`Ros2ClockPublisher` publishes a simulation's time as ``/clock`` (``evclock run SIM
-  --ros2-clock``; ``--ros2`` adds ``/joint_states`` and ``/tf``): ROS 2 nodes with
+  --ros2-clock``; ``--ros2`` adds ``/joint_states``, ``/tf``, ``/tf_static``): ROS 2 nodes with
   ``use_sim_time:=true`` follow it.
 * :class:`Ros2ClockSource` is a time source that follows a ROS 2 ``/clock``
   (``EVCLOCK_CLOCK=ros2:///clock`` or ``evclock.run(main(), clock="ros2:///clock")``).
