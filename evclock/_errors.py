@@ -148,6 +148,12 @@ class JoinRefusedError(RemoteClockError):
     or one that answered a participant with a token without proving itself first)."""
 
 
+class WeakTokenError(InvalidArgumentError):
+    """A clock token too weak to be safe (below 128 bits): refused by the clock server and by
+    participants. The server proves it knows the token to anyone who connects, so a short
+    token could be guessed offline from one recorded proof."""
+
+
 class ParticipantLostError(RemoteClockError):
     """A participant the simulation depends on died, stopped answering, never joined, or left
     without handing over what it owed (the scenario controllers' report).

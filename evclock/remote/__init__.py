@@ -7,6 +7,7 @@ clock="unix://...")`` and follows it or runs in lockstep with it.
 * :mod:`._address` parses ``unix:///path`` / ``tcp://host:port`` endpoints, opens sockets,
   makes the private default directory and reads a Unix peer's credentials;
 * :mod:`._protocol` is the length-prefixed binary framing and its authenticated handshake;
+* :mod:`._token` checks a token's strength, makes one, and reads the command line's;
 * :mod:`._server` serves a :class:`~evclock.SimEventLoop`'s time (follow and lockstep),
   assembled from one part per trust boundary over :mod:`._core` (the shared state and
   sending): :mod:`._admission` (connecting, the handshake, joining), :mod:`._rounds` (holds,
@@ -28,6 +29,7 @@ from evclock._errors import (
     ProtocolError,
     RemoteCallError,
     RemoteClockError,
+    WeakTokenError,
 )
 from evclock.remote._participant import RemoteClockSource, participant
 from evclock.remote._server import ClockServer, Message, serve
@@ -44,6 +46,7 @@ __all__ = [
     "RemoteClockSource",
     "participant",
     "serve",
+    "WeakTokenError",
 ]
 
 for _name in (
@@ -52,6 +55,7 @@ for _name in (
     "ProtocolError",
     "RemoteCallError",
     "RemoteClockError",
+    "WeakTokenError",
 ):
     globals()[_name].__module__ = __name__
 del _name

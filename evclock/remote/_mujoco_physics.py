@@ -35,7 +35,13 @@ from typing import Any, Final
 import numpy as np
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
-from evclock.remote._checks import all_finite_numbers, decode_request, is_finite_number, is_int
+from evclock.remote._checks import (
+    all_finite_numbers,
+    decode_request,
+    is_finite_number,
+    is_int,
+    shown,
+)
 
 SERVICE: Final = "mujoco"  # reads: request/reply
 TOPIC: Final = "mujoco"  # writes: ordered, applied at the end of the round
@@ -60,22 +66,13 @@ READS: Final = (
 WRITES: Final = ("ctrl", "qfrc_applied", "xfrc_applied")
 
 
-def _cut(text: str) -> str:
-    """``text``, cut short: an error message is not an echo of a hostile request."""
-    return text if len(text) <= 40 else f"{text[:37]}..."
-
-
-def _shown(value: object) -> str:
-    return _cut(repr(value))
-
-
 def _bad(field: object, reason: str) -> InvalidArgumentError:
     return InvalidArgumentError(f"mujoco.{field}: {reason}")
 
 
 def _field_name(name: object, allowed: tuple[str, ...], kind: str) -> str:
     if not isinstance(name, str):
-        raise InvalidArgumentError(f"a mujoco {kind} names a field by a string, got {_shown(name)}")
+        raise InvalidArgumentError(f"a mujoco {kind} names a field by a string, got {shown(name)}")
     if name not in allowed:
         raise _unserved(name, kind)
     return name
@@ -87,7 +84,8 @@ def _unserved(name: str, kind: str) -> InvalidArgumentError:
         reason = "is read-only to controllers in another process"
     else:
         reason = "is not served to controllers in another process"
-    return InvalidArgumentError(f"mujoco.{_cut(name)} {reason} ({label}: {', '.join(allowed)})")
+    field = name if name in READS else shown(name)  # a peer's name: quoted, cut short
+    return InvalidArgumentError(f"mujoco.{field} {reason} ({label}: {', '.join(allowed)})")
 
 
 class MjDataService:
@@ -152,11 +150,11 @@ class MjDataService:
         seen: set[int] = set()
         for index in indices:
             if not is_int(index):
-                raise _bad(field, f"an index must be an integer, got {_shown(index)}")
+                raise _bad(field, f"an index must be an integer, got {shown(index)}")
             if not 0 <= index < size:
                 raise _bad(
                     field,
-                    f"index {index} is out of range: the model's {field} has {size} values "
+                    f"index {shown(index)} is out of range: the model's {field} has {size} values "
                     f"(valid: 0 to {size - 1})",
                 )
             if index in seen:
@@ -164,7 +162,7 @@ class MjDataService:
             seen.add(index)
         if not all_finite_numbers(values):
             bad = next(value for value in values if not is_finite_number(value))
-            raise _bad(field, f"values must be finite numbers, got {_shown(bad)}")
+            raise _bad(field, f"values must be finite numbers, got {shown(bad)}")
         np.put(target, indices, values)  # in place, flat (row-major) indices
 
 

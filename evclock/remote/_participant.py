@@ -39,6 +39,7 @@ from evclock.kernel._source import Gate
 from evclock.remote import _protocol as proto
 from evclock.remote._address import Address, connect, parse_address, peer_credentials
 from evclock.remote._routing import Message
+from evclock.remote._token import check_token
 from evclock.sources import TimeSource
 from evclock.time._time import SIM, new_time
 
@@ -83,6 +84,7 @@ class RemoteClockSource(TimeSource):
     retried). TCP needs a token.
 
     :raises InvalidArgumentError: a TCP address without ``?token=``.
+    :raises WeakTokenError: a token below 128 bits (fewer than 22 URL-safe characters).
     :raises JoinRefusedError: the server refused this process, or it is not who it should be.
     :raises ClockLostError: no server answered within ``timeout``.
     :raises ProtocolError: the server speaks another protocol version.
@@ -93,6 +95,8 @@ class RemoteClockSource(TimeSource):
 
     def __init__(self, address: str | Address) -> None:
         addr = address if isinstance(address, Address) else parse_address(address)
+        if addr.token is not None:
+            check_token(addr.token)  # before anything is sent: a weak one is refused here too
         self._address = addr
         self._loop: Any = None  # the SimEventLoop this source drives (set by attach)
         self.name = addr.name or _default_name()

@@ -26,7 +26,13 @@ import json
 from typing import Any, Final
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, ProtocolError
-from evclock.remote._checks import all_finite_numbers, decode_request, is_finite_number, is_int
+from evclock.remote._checks import (
+    all_finite_numbers,
+    decode_request,
+    is_finite_number,
+    is_int,
+    shown,
+)
 
 SERVICE: Final = "pybullet"  # reads: request/reply
 TOPIC: Final = "pybullet"  # commands: ordered, applied at the end of the round
@@ -250,17 +256,17 @@ class _Checker:
             return
         for item in items:
             if not is_finite_number(item):
-                raise _bad(self._name, param, f"must hold finite numbers, got {item!r}")
+                raise _bad(self._name, param, f"must hold finite numbers, got {shown(item)}")
 
     def _index(self, param: str, value: object, low: int, count: int, what: str) -> None:
         if not is_int(value):
-            raise _bad(self._name, param, f"must be an integer {what}, got {value!r}")
+            raise _bad(self._name, param, f"must be an integer {what}, got {shown(value)}")
         assert isinstance(value, int)
         if not low <= value < count:
             raise _bad(
                 self._name,
                 param,
-                f"{value} is not a {what} of that body (valid: {low} to {count - 1})",
+                f"{shown(value)} is not a {what} of that body (valid: {low} to {count - 1})",
             )
 
     def check(self, kinds: dict[str, str], values: dict[str, Any]) -> None:
@@ -272,7 +278,7 @@ class _Checker:
         }
         for param, value in values.items():
             if kinds[param] == "body" and (not is_int(value) or value not in bodies):
-                raise _bad(self._name, param, f"{value!r} is not the id of a body")
+                raise _bad(self._name, param, f"{shown(value)} is not the id of a body")
         main = next((v for k, v in values.items() if kinds[k] == "body"), None)
         for param, value in values.items():
             kind, _, owner = kinds[param].partition("@")
@@ -315,20 +321,20 @@ class _Checker:
                     self._floats(param, item, 3)
             elif kind == "float":
                 if not is_finite_number(value):
-                    raise _bad(self._name, param, f"must be a finite number, got {value!r}")
+                    raise _bad(self._name, param, f"must be a finite number, got {shown(value)}")
             elif kind in ("int", "flag"):
                 if not is_int(value) and not isinstance(value, bool):
-                    raise _bad(self._name, param, f"must be an integer, got {value!r}")
+                    raise _bad(self._name, param, f"must be an integer, got {shown(value)}")
                 if not -(2**31) <= int(value) < 2**31:
-                    raise _bad(self._name, param, f"{value} is out of range")
+                    raise _bad(self._name, param, f"{shown(value)} is out of range")
             elif kind == "mode":
                 modes = (p.POSITION_CONTROL, p.VELOCITY_CONTROL, p.TORQUE_CONTROL, p.PD_CONTROL)
                 if not is_int(value) or value not in modes:
-                    raise _bad(self._name, param, f"{value!r} is not a control mode")
+                    raise _bad(self._name, param, f"{shown(value)} is not a control mode")
             elif kind == "frame" and (
                 not is_int(value) or value not in (p.WORLD_FRAME, p.LINK_FRAME)
             ):
-                raise _bad(self._name, param, f"{value!r} is not WORLD_FRAME or LINK_FRAME")
+                raise _bad(self._name, param, f"{shown(value)} is not WORLD_FRAME or LINK_FRAME")
 
 
 #: Per served function: its parameters' kinds by name, and their names in order.
@@ -355,7 +361,7 @@ def _bind(
         key = _ALIASES.get(key, key)
         if key not in kinds:
             raise InvalidArgumentError(
-                f"pybullet.{name} has no parameter {key!r} served to remote controllers "
+                f"pybullet.{name} has no parameter {shown(key)} served to remote controllers "
                 f"(served: {', '.join(order) or 'none'})"
             )
         if key in values:
@@ -391,7 +397,7 @@ def _decode_call(data: bytes, allowed: frozenset[str]) -> tuple[str, list[Any], 
     if name not in allowed:
         kind = "command" if allowed is WRITES else "query"
         raise InvalidArgumentError(
-            f"pybullet.{name} is not served to remote controllers as a {kind}"
+            f"pybullet.{shown(name)} is not served to remote controllers as a {kind}"
         )
     return name, args, kwargs
 
@@ -416,7 +422,11 @@ class PhysicsService:
 
     def _checked(self, data: bytes, allowed: frozenset[str]) -> tuple[str, dict[str, Any]]:
         name, args, kwargs = _decode_call(data, allowed)
-        kwargs.pop("physicsClientId", None)
+        if "physicsClientId" in kwargs:
+            raise InvalidArgumentError(
+                f"pybullet.{name}: physicsClientId is not served: the simulation calls its own "
+                "client (a RemotePhysics leaves it out of its requests)"
+            )
         kinds, values = _bind(name, args, kwargs)
         _Checker(self._p, self._client, name).check(kinds, values)
         return name, values

@@ -4,18 +4,21 @@
 progress bar (sim time and achieved real-time factor) and, at the end, a table of every rate
 loop's ticks, missed periods and lateness. Other commands live in their own modules
 (``_cli_sweep``: ``sweep``; ``_cli_trace``: ``trace diff`` and ``plot``; ``_cli_remote``:
-``control`` and ``run --serve``), all on the application object of :mod:`evclock.tools._cli_app`.
+``control``, ``token`` and ``run --serve``), all on the application object of
+:mod:`evclock.tools._cli_app`.
 """
 
 from __future__ import annotations
 
 import ast
+import contextlib
 import functools
 import inspect
 import json
 import sys
 import textwrap
 import traceback
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -236,8 +239,17 @@ def run_command(
     serve: Annotated[
         str | None,
         typer.Option(
-            help="Serve this run's sim time at ADDR (unix:///path.sock, or "
-            "tcp://HOST:PORT?token=SECRET: TCP always needs a token)."
+            help="Serve this run's sim time at ADDR (unix:///path.sock, or tcp://HOST:PORT: "
+            "TCP always needs a token, from --token-file or EVCLOCK_TOKEN, else a fresh one "
+            "is written to a private file whose path is printed)."
+        ),
+    ] = None,
+    token_file: Annotated[
+        Path | None,
+        typer.Option(
+            help="With --serve: read the clock token from this file (yours, chmod 600), or "
+            "set EVCLOCK_TOKEN; never put token= in the address (every user can read a "
+            "command line)."
         ),
     ] = None,
     remote_controllers: Annotated[
@@ -297,6 +309,8 @@ def run_command(
             )
         if remote_controllers and serve is None:
             raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
+        if token_file is not None and serve is None:
+            raise InvalidArgumentError("--token-file needs --serve ADDR (it is the clock's)")
         if serve is not None and values:
             raise InvalidArgumentError(
                 "--serve runs the scenario as registered: drop --param "
@@ -309,10 +323,12 @@ def run_command(
         from evclock.tools._record import foxglove_option
 
         live, pace = foxglove_option(foxglove, foxglove_addr, pace, serve=serve)
-        with progress_bar(console, quiet) as progress, live:
+        token, written = _serve_token(serve, token_file)
+        with _removed(written), progress_bar(console, quiet) as progress, live:
             if serve is not None:
                 report = _served(serve, remote_controllers)(
                     scenario,
+                    token=token,
                     until=until,
                     rtf=pace,
                     seed=seed,
@@ -350,6 +366,32 @@ def run_command(
     raise typer.Exit(exit_code(report))
 
 
+def _serve_token(serve: str | None, token_file: Path | None) -> tuple[str | None, Path | None]:
+    """The token ``--serve`` serves with; a fresh one's file is announced on stderr."""
+    if serve is None:
+        return None, None
+    from evclock.tools._cli_remote import serve_token
+
+    token, written = serve_token(serve, token_file)
+    if written is not None:
+        typer.echo(
+            f"evclock: the clock token of {serve} is in {written} (mode 0600, removed when "
+            f"this run ends); join with --token-file {written}",
+            err=True,
+        )
+    return token, written
+
+
+@contextlib.contextmanager
+def _removed(path: Path | None) -> Iterator[None]:
+    """Remove the file at ``path`` (if any) when the block ends, however it ends."""
+    try:
+        yield
+    finally:
+        if path is not None:
+            path.unlink(missing_ok=True)
+
+
 def _served(address: str, remote_controllers: bool) -> Any:
     from evclock.tools._cli_remote import serve_scenario
 
@@ -357,9 +399,10 @@ def _served(address: str, remote_controllers: bool) -> Any:
 
 
 def _register_remote() -> None:
-    from evclock.tools._cli_remote import control_command
+    from evclock.tools._cli_remote import control_command, token_command
 
     app.command("control")(with_exit_statuses(control_command))
+    app.command("token")(token_command)
 
 
 _register_remote()

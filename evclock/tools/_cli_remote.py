@@ -13,6 +13,11 @@ status: it accepts that verdict only from the lockstep participant it waited for
 well-formed (anything else is answered with an error to its sender), measures sim time,
 wall time and the final state itself, and stops when the controllers leave (a follower that
 stays joined changes nothing).
+
+Tokens never ride on the command line (any user of the machine reads a process's arguments):
+both commands read one from ``--token-file PATH`` or ``EVCLOCK_TOKEN``
+(:func:`evclock.remote._token.token_from`), refuse ``token=`` in an address, and ``--serve
+tcp://...`` without one writes a fresh token to a private file (:func:`serve_token`).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import time
 import urllib.parse
 from pathlib import Path
@@ -37,6 +43,7 @@ from evclock.remote._mujoco_physics import MjDataService, RemoteMjData
 from evclock.remote._participant import participant
 from evclock.remote._physics import PhysicsService, RemotePhysics
 from evclock.remote._server import DEFAULT_STEP_TIMEOUT, Message, serve
+from evclock.remote._token import ENV_TOKEN, new_token, token_from, write_token_file
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -49,6 +56,54 @@ CONTROLLERS = "controllers"
 REPORT_TOPIC = "evclock.report"
 #: Service answering the full physical state (``Scenario.state_vector``) as JSON.
 STATE_SERVICE = "evclock.state"
+
+
+#: ``--token-file``'s help, for both commands.
+TOKEN_FILE_HELP = (
+    "Read the clock token from this file (yours, chmod 600), or set EVCLOCK_TOKEN; never "
+    "put token= in the address (every user can read a command line)."
+)
+
+
+def cli_token(address: str, option: str, token_file: Path | None) -> str | None:
+    """The token for ``address`` given to ``option``: from ``--token-file`` or
+    ``EVCLOCK_TOKEN`` (see :func:`~evclock.remote._token.token_from`), or None.
+
+    :raises InvalidArgumentError: the address carries ``token=`` (the message does not show
+        it), or the token file or variable is refused.
+    """
+    query = urllib.parse.parse_qs(
+        urllib.parse.urlsplit(address).query if isinstance(address, str) else "",
+        keep_blank_values=True,
+    )
+    if "token" in query:
+        raise InvalidArgumentError(
+            f"{option}: a token in the address (token=...) is readable by every user of the "
+            "machine (a command line is public, /proc/PID/cmdline); drop it from the address "
+            f"and pass it with --token-file PATH (a file only you can read: chmod 600) or in "
+            f"the {ENV_TOKEN} environment variable"
+        )
+    return token_from(token_file)
+
+
+def serve_token(address: str, token_file: Path | None) -> tuple[str | None, Path | None]:
+    """The token ``evclock run --serve ADDR`` serves with, and the file it wrote it to.
+
+    The token of ``--token-file`` or ``EVCLOCK_TOKEN`` if given (no file written); otherwise,
+    on TCP, a fresh 256-bit token written to a new 0600 file of the private directory (the
+    caller prints its path and removes the file when the run ends); on a Unix socket, none.
+    """
+    token = cli_token(address, "--serve", token_file)
+    if token is not None or urllib.parse.urlsplit(address).scheme != "tcp":
+        return token, None
+    token = new_token()
+    return token, write_token_file(token, f"sim-{os.getpid()}")
+
+
+def token_command() -> None:
+    """Print a fresh random clock token (256 bits, URL-safe) for --token-file or
+    EVCLOCK_TOKEN; write it to a private file with `(umask 077; evclock token > FILE)`."""
+    typer.echo(new_token())
 
 
 def _limit(cls: Any, until: float | None) -> float:
@@ -73,8 +128,11 @@ def serve_scenario(
     step_timeout: float | None = DEFAULT_STEP_TIMEOUT,
     record: Path | None = None,
     engine: str = "pybullet",
+    token: str | None = None,
 ) -> RunReport:
     """Run scenario ``name`` serving its sim time at ``address`` (see the module docstring).
+
+    ``token``: the clock token participants must prove they know (needed on TCP).
 
     ``record`` (and a live view, see :func:`evclock.tools._record.live_view`): the simulation
     writes the world's channels (state, joints, transforms, scene) and, when the controllers
@@ -128,7 +186,7 @@ def serve_scenario(
         if recorder is not None:
             recorder.attach(source, clk, scenario.state_vector)
         async with serve(
-            address, info=info, on_fault=on_fault, step_timeout=step_timeout
+            address, info=info, on_fault=on_fault, step_timeout=step_timeout, token=token
         ) as server:
             if engine == "mujoco":
                 MjDataService(scenario.world.data).install(server)
@@ -236,12 +294,16 @@ def _loops_from(data: list[dict[str, Any]]) -> list[Any]:
     return [LoopReport(d["name"], d["hz"], d["stats"]) for d in data]
 
 
-def _with_name(url: str, name: str) -> str:
-    """``url`` with ``name=`` added to its query unless it names the participant already."""
+def _joining(url: str, name: str, token: str | None) -> str:
+    """``url`` with ``name=`` added to its query unless it names the participant already,
+    and ``token=`` if given (a string in this process, never on a command line)."""
     query = urllib.parse.parse_qs(urllib.parse.urlsplit(url).query)
-    if "name" in query:
+    added = {} if "name" in query else {"name": name}
+    if token is not None:
+        added["token"] = token
+    if not added:
         return url
-    return f"{url}{'&' if '?' in url else '?'}{urllib.parse.urlencode({'name': name})}"
+    return f"{url}{'&' if '?' in url else '?'}{urllib.parse.urlencode(added)}"
 
 
 def _private_copy(cls: type[Any], seed: int, engine: str) -> Any:
@@ -267,9 +329,10 @@ def control_scenario(
     seed: int = 0,
     until: float | None = None,
     engine: str = "pybullet",
+    token: str | None = None,
 ) -> RunReport:
     """Run scenario ``name``'s controllers against the simulation served at ``clock_url``
-    (which must run the same scenario, seed and ``engine``)."""
+    (which must run the same scenario, seed and ``engine``), proving ``token`` if given."""
     from evclock.tools._runs import RunReport, _loop_reports, _Outcome, scenario_class
     from evclock.tools._scenarios import check_engine
 
@@ -281,7 +344,12 @@ def control_scenario(
             f"{clock_url!r}: only an evclock clock server runs the scenario's physics for its "
             "controllers in lockstep"
         )
-    parse_address(clock_url)  # the address's own errors, before anything is built
+    parsed = parse_address(clock_url)  # the address's own errors, before anything is built
+    if parsed.scheme == "tcp" and token is None and parsed.token is None:
+        raise InvalidArgumentError(
+            f"joining the simulation at {parsed} over tcp needs its token: pass the file "
+            f"`evclock run --serve` printed with --token-file PATH, or set {ENV_TOKEN}"
+        )
     cls = scenario_class(name, {})
     check_engine(cls, engine)
     limit = _limit(cls, until)
@@ -340,7 +408,7 @@ def control_scenario(
         link.publish(REPORT_TOPIC, json.dumps(report.to_json()).encode())
         return report
 
-    return evclock_run(main(), clock=_with_name(clock_url, CONTROLLERS))
+    return evclock_run(main(), clock=_joining(clock_url, CONTROLLERS, token))
 
 
 def control_command(
@@ -363,6 +431,7 @@ def control_command(
         Path | None, typer.Option("--json", help="Also write the report as JSON to this file.")
     ] = None,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
+    token_file: Annotated[Path | None, typer.Option(help=TOKEN_FILE_HELP)] = None,
 ) -> None:
     """Run a scenario's controllers in lockstep with a simulation served by another process
     (`evclock run SIM --serve ADDR --remote-controllers`; one started without
@@ -382,7 +451,10 @@ def control_command(
     try:
         check_seed(seed)
         check_until(until)
-        report = control_scenario(sim, clock_url=clock_url, seed=seed, until=until, engine=engine)
+        token = cli_token(clock_url, "--clock", token_file)
+        report = control_scenario(
+            sim, clock_url=clock_url, seed=seed, until=until, engine=engine, token=token
+        )
     except EvClockError as exc:
         print_error(exc)
         raise typer.Exit(2) from None

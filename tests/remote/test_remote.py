@@ -41,6 +41,10 @@ async def main():
 evclock.run(main())
 """
 
+#: Clock tokens of 128 bits or more (22 URL-safe characters): a weaker one is refused.
+TOKEN = "kB2n7T0qZx4LmP9sWv3YcR"
+OTHER_TOKEN = "Qe5hVd8uNa1oJf6gXt0bUy"
+
 
 def address(tmp_path: Path, name: str = "sim.sock") -> str:
     return f"unix://{tmp_path / name}"
@@ -502,14 +506,16 @@ def test_an_existing_socket_file_is_not_replaced(tmp_path: Path) -> None:
 def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
     async def main() -> list[str]:
         loop = asyncio.get_running_loop()
-        async with evclock.remote.serve("tcp://127.0.0.1:0", token="s3cret") as server:
+        async with evclock.remote.serve("tcp://127.0.0.1:0", token=TOKEN) as server:
             assert server.address.startswith("tcp://127.0.0.1:")
-            wrong = spawn(tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token=nope")
+            wrong = spawn(
+                tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token={OTHER_TOKEN}"
+            )
             # Served while we wait for the refused process to end (a wait in a worker thread).
             code, _, refused = await loop.run_in_executor(None, finish, wrong)
             assert code == 1
             right = spawn(
-                tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token=s3cret&name=ok"
+                tmp_path, TICKER, "1", EVCLOCK_CLOCK=f"{server.address}?token={TOKEN}&name=ok"
             )
             await server.wait_for_participants("ok")
             await server.wait_until_left()
@@ -518,7 +524,7 @@ def test_tcp_serves_on_loopback_and_checks_the_token(tmp_path: Path) -> None:
         return [refused.strip().splitlines()[-1], out, server.address]
 
     wrong, right, served = evclock.run(main())
-    # The server could not prove it knows "nope": the participant sends it nothing.
+    # The server could not prove it knows the other token: the participant sends it nothing.
     assert wrong == (
         f"evclock.remote.JoinRefusedError: the clock server at {served} could not "
         "prove it knows the token: it is not the simulation you meant (or the tokens "
@@ -536,7 +542,7 @@ def test_tcp_refuses_a_non_loopback_address_without_a_token() -> None:
         evclock.run(main())
 
     async def with_token() -> None:
-        async with evclock.remote.serve("tcp://0.0.0.0:0", token="t"):
+        async with evclock.remote.serve("tcp://0.0.0.0:0", token=TOKEN):
             pass
 
     with pytest.raises(evclock.InvalidArgumentError, match="not a loopback address"):
@@ -765,8 +771,8 @@ def test_the_simulation_publishes_to_a_waiting_lockstep_participant(tmp_path: Pa
 def test_a_busy_tcp_port_is_a_clear_error() -> None:
     async def main() -> None:
         async with (
-            evclock.remote.serve("tcp://127.0.0.1:0", token="t") as first,
-            evclock.remote.serve(first.address, token="t"),
+            evclock.remote.serve("tcp://127.0.0.1:0", token=TOKEN) as first,
+            evclock.remote.serve(first.address, token=TOKEN),
         ):
             pass
 

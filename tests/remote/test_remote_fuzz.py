@@ -22,7 +22,7 @@ from evclock.remote import _protocol as proto
 hypothesis = pytest.importorskip("hypothesis")
 st = pytest.importorskip("hypothesis.strategies")
 
-TOKEN = "fuzz-token"
+TOKEN = "fuzz-token-of-at-least-128-bits"
 
 #: An honest lockstep participant: publishes its ticks, hears the other's, asks the
 #: simulation to double numbers; prints everything it saw, with sim times.

@@ -113,7 +113,7 @@ def test_a_participant_never_sends_its_token_to_an_impostor_server(tmp_path: Pat
         tmp_path,
         STEADY,
         "1",
-        EVCLOCK_CLOCK=f"unix://{sock_path}?name=victim&token=hunter2-secret&timeout=20",
+        EVCLOCK_CLOCK=f"unix://{sock_path}?name=victim&token=correct-horse-battery-staple&timeout=20",
     )
     code, _, err = finish(victim)
     assert code == 1
@@ -137,11 +137,14 @@ def test_an_eavesdropper_learns_neither_the_token_nor_a_reusable_proof(tmp_path:
     relay = spawn(tmp_path, RELAY, str(front), real.removeprefix("unix://"), str(dump))
     assert read_line(relay) == "listening\n"
     honest = spawn(
-        tmp_path, STEADY, "2", EVCLOCK_CLOCK=f"unix://{front}?name=honest&token=hunter2-secret"
+        tmp_path,
+        STEADY,
+        "2",
+        EVCLOCK_CLOCK=f"unix://{front}?name=honest&token=correct-horse-battery-staple",
     )
 
     async def main() -> None:
-        async with evclock.remote.serve(real, token="hunter2-secret") as server:
+        async with evclock.remote.serve(real, token="correct-horse-battery-staple") as server:
             await server.wait_for_participants("honest")
             await server.wait_until_left()
 
@@ -173,7 +176,7 @@ def test_an_eavesdropper_learns_neither_the_token_nor_a_reusable_proof(tmp_path:
 
     async def replayed() -> bytes:
         loop = asyncio.get_running_loop()
-        async with evclock.remote.serve(real, token="hunter2-secret") as server:
+        async with evclock.remote.serve(real, token="correct-horse-battery-staple") as server:
             return await loop.run_in_executor(None, replay, server.address)
 
     frames = proto.Reader().feed(evclock.run(replayed()))
