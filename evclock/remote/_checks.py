@@ -59,6 +59,14 @@ def shown(value: object) -> str:
     return text if cut <= 0 else f"{text[:SHOWN_CHARS]}... ({cut} more characters not shown)"
 
 
+def shown_name(name: object) -> str:
+    """A name a peer sent (a function's, a field's) as a message shows it: as it is if it is
+    a short ASCII identifier (``qpos2``: nothing to escape), else :func:`shown`."""
+    if isinstance(name, str) and len(name) <= 64 and name.isascii() and name.isidentifier():
+        return name
+    return shown(name)
+
+
 def one_line(text: str) -> str:
     """``text`` (a message about a peer, possibly quoting what it sent) as one bounded line:
     control characters and line breaks escaped (``repr``'s escapes, without the quotes),

@@ -41,6 +41,7 @@ from evclock.remote._checks import (
     is_finite_number,
     is_int,
     shown,
+    shown_name,
 )
 
 SERVICE: Final = "mujoco"  # reads: request/reply
@@ -84,8 +85,9 @@ def _unserved(name: str, kind: str) -> InvalidArgumentError:
         reason = "is read-only to controllers in another process"
     else:
         reason = "is not served to controllers in another process"
-    field = name if name in READS else shown(name)  # a peer's name: quoted, cut short
-    return InvalidArgumentError(f"mujoco.{field} {reason} ({label}: {', '.join(allowed)})")
+    return InvalidArgumentError(
+        f"mujoco.{shown_name(name)} {reason} ({label}: {', '.join(allowed)})"
+    )
 
 
 class MjDataService:

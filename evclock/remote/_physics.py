@@ -32,6 +32,7 @@ from evclock.remote._checks import (
     is_finite_number,
     is_int,
     shown,
+    shown_name,
 )
 
 SERVICE: Final = "pybullet"  # reads: request/reply
@@ -397,7 +398,7 @@ def _decode_call(data: bytes, allowed: frozenset[str]) -> tuple[str, list[Any], 
     if name not in allowed:
         kind = "command" if allowed is WRITES else "query"
         raise InvalidArgumentError(
-            f"pybullet.{shown(name)} is not served to remote controllers as a {kind}"
+            f"pybullet.{shown_name(name)} is not served to remote controllers as a {kind}"
         )
     return name, args, kwargs
 

@@ -734,8 +734,8 @@ def test_bad_mujoco_requests_are_refused_and_the_simulation_goes_on(tmp_path: Pa
         f"{failed}InvalidArgumentError: a mujoco read names a field by a string, got 1",
         f"{failed}InvalidArgumentError: a mujoco read names at most 13 fields, got 14",
         f"{failed}ProtocolError: a mujoco request is not JSON",
-        f"{failed}InvalidArgumentError: mujoco.{'q' * 37}... is not served to controllers in "
-        f"another process (readable: {readable})",  # not an echo of the request
+        f"{failed}InvalidArgumentError: mujoco.'{'q' * 200}'... (99800 more characters not "
+        f"shown) is not served to controllers in another process (readable: {readable})",
     ]
     assert [misuse_1, misuse_2, misuse_3] == [
         "InvalidArgumentError: mujoco.qpos is read-only to controllers in another process "
