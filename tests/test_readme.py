@@ -169,7 +169,7 @@ def _check_python(args: list[str]) -> None:
             )
 
 
-TOOLS = {"ruff", "mypy", "lint-imports", "mkdocs", "twine", "export", "wait", "cd"}
+TOOLS = {"ruff", "mypy", "lint-imports", "mkdocs", "twine", "export", "wait", "cd", "umask"}
 
 
 def check_command(tokens: list[str]) -> None:
