@@ -158,7 +158,8 @@ class ParticipantLostError(RemoteClockError):
     """A participant the simulation depends on died, stopped answering, never joined, or left
     without handing over what it owed (the scenario controllers' report).
 
-    ``name`` is the participant's name.
+    ``name`` is the participant's name, as it joined (bare, not quoted); for participants that
+    never joined, the first missing one's (empty when a number of participants is short).
     """
 
     def __init__(self, message: str, name: str) -> None:

@@ -20,6 +20,7 @@ from typing import Final
 from evclock._errors import ProtocolError
 from evclock.remote import _protocol as proto
 from evclock.remote._address import peer_credentials
+from evclock.remote._checks import one_line, shown
 from evclock.remote._core import ServerCore
 from evclock.remote._peer import Peer
 
@@ -121,7 +122,7 @@ class Admission(ServerCore):
                 if not other.lost:
                     self._refuse(
                         peer,
-                        f"a participant named {name!r} is already joined; give this process "
+                        f"a participant named {shown(name)} is already joined; give this process "
                         "another name (?name=... in the clock address)",
                     )
                     return
@@ -155,6 +156,7 @@ class Admission(ServerCore):
 
     def _refuse(self, peer: Peer, reason: str, code: int = proto.REFUSE_FINAL) -> None:
         pid = "" if peer.pid is None else f" (pid {peer.pid})"
+        reason = one_line(reason)
         log.warning("clock server: refused a connection%s: %s", pid, reason)
         with contextlib.suppress(OSError):
             peer.sock.send(proto.refuse(reason, code))

@@ -86,7 +86,7 @@ class ServerCore:
         self._closed = False
         self._check_scheduled = False
         self._join_deadline: float | None = None
-        self._join_missing: Callable[[], str] = str
+        self._join_missing: Callable[[], tuple[str, str]] = lambda: ("", "")
         self._jumps = 0  # time jumps of the simulation so far (JUMP frames are numbered)
 
     if TYPE_CHECKING:  # one part calls another's: each is defined in the module named

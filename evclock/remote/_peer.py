@@ -10,6 +10,7 @@ import socket
 import time
 
 from evclock.remote import _protocol as proto
+from evclock.remote._checks import shown
 
 
 class Peer:
@@ -67,7 +68,7 @@ class Peer:
     def describe(self) -> str:
         mode = "lockstep" if self.mode == proto.MODE_LOCKSTEP else "follow"
         pid = "" if self.pid is None else f", pid {self.pid}"
-        return f"{self.name!r} ({mode}{pid})"
+        return f"{shown(self.name)} ({mode}{pid})"
 
     def last_did(self) -> str:
         """What it was last seen doing, for the message that reports it lost."""

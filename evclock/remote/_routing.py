@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 from evclock._errors import InvalidTypeError, ProtocolError
 from evclock.remote import _protocol as proto
+from evclock.remote._checks import shown
 from evclock.remote._core import ServerCore
 from evclock.remote._peer import Peer
 from evclock.time._time import SIM, Time, new_time
@@ -122,13 +123,13 @@ class Routing(ServerCore):
                         self._bad_frame(
                             origin,
                             proto.PUBLISH,
-                            f"the simulation refused data on topic {topic!r}: "
+                            f"the simulation refused data on topic {shown(topic)}: "
                             f"{type(exc).__name__}: {exc}",
                         )
                         continue
                     self._loop.call_exception_handler(
                         {
-                            "message": f"subscriber {callback!r} of topic {topic!r} raised",
+                            "message": f"subscriber {callback!r} of topic {shown(topic)} raised",
                             "exception": exc,
                         }
                     )

@@ -35,10 +35,12 @@ from evclock.remote import _admission
 from evclock.remote import _protocol as proto
 from evclock.remote._address import bound_address, listen, parse_address, private_dir
 from evclock.remote._admission import Admission
+from evclock.remote._checks import one_line, shown
 from evclock.remote._peer import Peer
 from evclock.remote._rounds import Rounds
 from evclock.remote._routing import Message, Routing
 from evclock.remote._services import Services
+from evclock.remote._token import check_token
 from evclock.time._time import Duration
 
 __all__ = ["DEFAULT_STEP_TIMEOUT", "ClockServer", "Message", "default_address", "serve"]
@@ -87,6 +89,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
         JSON-serialisable.
     :raises InvalidTypeError: ``token`` is not a non-empty string, ``address`` is not a
         string, or ``peer_uids`` holds something other than integers.
+    :raises WeakTokenError: ``token`` is below 128 bits (fewer than 22 URL-safe characters).
     """
 
     def __init__(
@@ -131,6 +134,8 @@ class ClockServer(Admission, Rounds, Routing, Services):
             raise InvalidTypeError("token must be a non-empty string or None")
         parsed = parse_address(address, participant=False)
         token = token if token is not None else parsed.token
+        if token is not None:
+            check_token(token)  # its proof goes to anyone who connects: an offline oracle
         if parsed.scheme == "tcp" and token is None:
             raise InvalidArgumentError(
                 f"serving on {parsed} needs a shared token (token=... or ?token=... in the "
@@ -194,7 +199,8 @@ class ClockServer(Admission, Rounds, Routing, Services):
         """Wait until the named participants (or ``count`` of them) have joined.
 
         Sim time is held meanwhile: the simulation does not start without them. After
-        ``timeout`` wall seconds :class:`~evclock.remote.ParticipantLostError` names who is missing.
+        ``timeout`` wall seconds :class:`~evclock.remote.ParticipantLostError` names who is
+        missing (its ``name``: the first missing name, or empty when a ``count`` is short).
         """
         for name in names:
             if not isinstance(name, str):
@@ -206,11 +212,11 @@ class ClockServer(Admission, Rounds, Routing, Services):
             joined = self.participants
             return all(n in joined for n in names) and len(joined) >= (count or 0)
 
-        def missing() -> str:
+        def missing() -> tuple[str, str]:
             absent = [n for n in names if n not in self.participants]
-            if absent:
-                return ", ".join(repr(n) for n in absent)
-            return f"{count} participants ({len(self.participants)} joined)"
+            if absent:  # the error's name: the first missing, bare
+                return ", ".join(shown(n) for n in absent), absent[0]
+            return f"{count} participants ({len(self.participants)} joined)", ""
 
         self._join_deadline = time.monotonic() + timeout
         self._join_missing = missing
@@ -313,6 +319,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
         if peer.lost or peer not in self._peers:
             return
         peer.errors += 1
+        reason = one_line(reason)  # it may quote what the peer sent: one bounded line
         label = chr(kind) if 32 < kind < 127 else str(kind)
         log.warning(
             "clock server: refused a frame of kind %s from %s: %s", label, peer.describe(), reason
@@ -461,10 +468,11 @@ class ClockServer(Admission, Rounds, Routing, Services):
         self._expire_handshakes(now)
         if self._join_deadline is not None and now > self._join_deadline:
             self._join_deadline = None
+            missing, first = self._join_missing()
             error = ParticipantLostError(
-                f"{self._join_missing()} did not join {self._address} in time; start them "
+                f"{missing} did not join {self._address} in time; start them "
                 f"with clock='{self._address}' (or EVCLOCK_CLOCK)",
-                self._join_missing(),
+                first,
             )
             for _, fut in self._waiters:
                 if not fut.done():

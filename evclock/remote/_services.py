@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError
 from evclock.remote import _protocol as proto
+from evclock.remote._checks import one_line, shown
 from evclock.remote._core import ServerCore
 from evclock.remote._peer import Peer
 
@@ -36,12 +37,15 @@ class Services(ServerCore):
             known = ", ".join(sorted(self._services)) or "none"
             self._send(
                 peer,
-                proto.reply(call_id, False, f"no service {service!r} (known: {known})".encode()),
+                proto.reply(
+                    call_id, False, f"no service {shown(service)} (known: {known})".encode()
+                ),
             )
             return
         try:
             result = handler(data)
         except Exception as exc:
-            self._send(peer, proto.reply(call_id, False, f"{type(exc).__name__}: {exc}".encode()))
+            why = one_line(f"{type(exc).__name__}: {exc}")  # it may quote the request
+            self._send(peer, proto.reply(call_id, False, why.encode()))
             return
         self._send(peer, proto.reply(call_id, True, result))

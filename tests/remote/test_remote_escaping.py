@@ -18,6 +18,7 @@ from _remote_helpers import finish, spawn
 
 import evclock
 from evclock.remote._checks import LINE_CHARS, SHOWN_CHARS, one_line, shown, shown_name
+from evclock.remote._mujoco_physics import READS, WRITES, MjDataService
 
 #: What a hostile participant would like the simulation's log to say.
 FORGED = "\nclock server: participant 'controllers' (lockstep) left at 1.000000 s\x1b[2K\x1b[1A"
@@ -208,7 +209,6 @@ evclock.run(main())
 def test_hostile_mujoco_requests_reach_no_log_or_answer_unescaped_or_unbounded(
     tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    from evclock.remote._mujoco_physics import READS, WRITES, MjDataService
     from evclock_sims import MuJoCoWorld
     from evclock_sims.kuka import JOINT_NAMES
 
@@ -255,3 +255,76 @@ def test_hostile_mujoco_requests_reach_no_log_or_answer_unescaped_or_unbounded(
         "(valid: 0 to 6)",
     ]
     assert world.data.ctrl.tolist() == [0.0] * 7  # nothing refused reached the data
+
+
+# ---------------------------------------------------------------- the server
+
+#: Joins under a name meant to forge a log line, publishes data that a careless subscriber of
+#: the simulation puts in its error, and calls a careless service and a missing one.
+HOSTILE_PEER = """
+import json, sys, evclock
+FORGED, HUGE = json.loads(sys.argv[1])
+async def main():
+    clock = evclock.clock()
+    link = evclock.remote.participant()
+    link.publish("echo", (FORGED + "w" * HUGE).encode())
+    answers = []
+    for service in ("echo", "echo" + FORGED):
+        try:
+            link.call(service, (FORGED + "v" * HUGE).encode())
+            answers.append("answered")
+        except evclock.remote.RemoteCallError as exc:
+            answers.append(str(exc))
+    await clock.sleep(0.01)
+    print(json.dumps([answers, list(link.errors)]), flush=True)
+evclock.run(main())
+"""
+
+
+def test_what_a_peer_sent_reaches_the_server_log_and_answers_escaped_and_bounded(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    url = url_in(tmp_path)
+    name = "evil" + FORGED  # a name is at most 255 bytes: quoted, it cannot forge a line
+    proc = spawn(
+        tmp_path,
+        HOSTILE_PEER,
+        json.dumps([FORGED, HUGE]),
+        EVCLOCK_CLOCK=f"{url}?name={name.replace(chr(10), '%0A').replace(chr(27), '%1B')}",
+    )
+
+    def careless(data: bytes) -> None:  # a simulation's own code, echoing what it got
+        raise evclock.InvalidArgumentError(f"cannot use {data.decode()}")
+
+    async def main() -> None:
+        async with evclock.remote.serve(url) as server:
+            server.subscribe("echo", lambda message: careless(message.data))
+            server.provide("echo", careless)  # type: ignore[arg-type]
+            await server.wait_for_participants(name)
+            await server.wait_until_left()
+
+    with caplog.at_level(logging.INFO, logger="evclock.remote"):
+        evclock.run(main())
+    code, out, err = finish(proc)
+    assert code == 0, err[-2000:]
+    answers, errors = json.loads(out)
+    log = server_log(caplog)
+    check_bounded(answers + errors + log)
+    assert log[0].startswith(f"clock server: {shown(name)} (lockstep, pid ")
+    assert len(answers) == 2
+    assert answers[1] == (
+        f"call to {shown('echo' + FORGED)} failed in the simulation: no service "
+        f"{shown('echo' + FORGED)} (known: echo)"
+    )
+    assert answers[0].startswith(
+        "call to 'echo' failed in the simulation: "
+        + one_line(f"InvalidArgumentError: cannot use {FORGED}")
+    )
+    assert answers[0].endswith(" more characters not shown)")
+    assert errors[0].startswith(
+        "frame of kind 'P' refused: "
+        + one_line(f"the simulation refused data on topic 'echo': InvalidArgumentError: "
+                   f"cannot use {FORGED}")
+    )  # fmt: skip
+    assert errors[0].endswith(" more characters not shown)")
+    assert len(errors) == 1

@@ -856,9 +856,24 @@ def test_a_missing_participant_is_participant_lost_not_a_stall(tmp_path: Path) -
 
     with pytest.raises(evclock.remote.ParticipantLostError) as caught:
         evclock.run(main(), stall_timeout=1.0)  # the server's own bound decides
-    assert caught.value.name == "'ghost'"
+    assert caught.value.name == "ghost"  # bare, as everywhere else (it was "'ghost'")
     assert str(caught.value) == (
         f"'ghost' did not join {url} in time; start them with clock='{url}' (or EVCLOCK_CLOCK)"
+    )
+
+
+def test_participant_lost_names_the_first_missing_participant_bare(tmp_path: Path) -> None:
+    url = url_in(tmp_path)
+
+    async def main() -> None:
+        async with evclock.remote.serve(url) as server:
+            await server.wait_for_participants("never-comes", "nor-this-one", timeout=1.0)
+
+    with pytest.raises(evclock.remote.ParticipantLostError) as caught:
+        evclock.run(main(), stall_timeout=1.0)
+    assert caught.value.name == "never-comes"
+    assert str(caught.value).startswith(
+        f"'never-comes', 'nor-this-one' did not join {url} in time; "
     )
 
 

@@ -90,7 +90,14 @@ def test_a_weak_token_is_refused_saying_why(token: str, says: str) -> None:
 
 
 @pytest.mark.parametrize(
-    "token", [STRONG, "0123456789abcdef" * 2, "9" * 39, "correct horse battery staple", new_token()]
+    "token",
+    [
+        STRONG,
+        "0123456789abcdef" * 2,
+        "9" * 39,
+        "correct horse battery staple",
+        "Wq3nEo0Yh2nqzV1-8sPj5x9kHdF_aR6cLuM4tBvGe7I",  # as `evclock token` makes them
+    ],
 )
 def test_a_token_of_128_bits_or_more_is_accepted(token: str) -> None:
     assert check_token(token) == token
@@ -102,6 +109,21 @@ def test_a_fresh_token_is_256_random_bits() -> None:
     for token in tokens:
         assert re.fullmatch(r"[A-Za-z0-9_-]{43}", token)
     assert MIN_TOKEN_BITS == 128
+
+
+def test_serve_refuses_a_weak_token_given_either_way(tmp_path: Path) -> None:
+    async def serve(url: str, token: str | None) -> None:
+        async with evclock.remote.serve(url, token=token):
+            raise AssertionError("served with a weak token")
+
+    for url, token in (
+        ("tcp://127.0.0.1:0", "s3cret"),
+        ("tcp://127.0.0.1:0?token=s3cret", None),
+        (f"unix://{tmp_path / 'sim.sock'}", "hunter2-secret"),
+    ):
+        with pytest.raises(WeakTokenError, match=r"^the clock token is too weak: "):
+            evclock.run(serve(url, token))
+    assert not (tmp_path / "sim.sock").exists()  # refused before it listened
 
 
 def test_a_participant_refuses_a_weak_token_before_it_connects() -> None:
