@@ -111,7 +111,11 @@ class Admission(ServerCore):
         if token is not None and not hmac.compare_digest(
             payload, proto.prove(token, proto.CLIENT_SIDE, self._transcript(peer))
         ):
-            self._refuse(peer, "wrong or missing token: join with ?token=... in the clock address")
+            self._refuse(
+                peer,
+                "wrong or missing token: join with ?token=... in the clock address (evclock "
+                "control: --token-file PATH or EVCLOCK_TOKEN)",
+            )
             return
         self._on_hello(peer, peer.mode, peer.greeted)
 

@@ -183,7 +183,8 @@ def test_an_eavesdropper_learns_neither_the_token_nor_a_reusable_proof(tmp_path:
     assert [kind for kind, _ in frames] == [proto.CHALLENGE, proto.REFUSE]
     assert proto.parse_refuse(frames[1][1]) == (
         proto.REFUSE_FINAL,
-        "wrong or missing token: join with ?token=... in the clock address",
+        "wrong or missing token: join with ?token=... in the clock address (evclock control: "
+        "--token-file PATH or EVCLOCK_TOKEN)",
     )
 
 
