@@ -21,6 +21,7 @@ import os
 import secrets
 import stat
 import string
+import tempfile
 from pathlib import Path
 from typing import Final
 
@@ -160,17 +161,13 @@ def token_from(token_file: Path | None, environ: dict[str, str] | None = None) -
 
 
 def write_token_file(token: str, stem: str) -> Path:
-    """``token`` in a new file ``STEM.token`` of the private directory, mode 0600 from birth.
+    """``token`` in a new file ``STEM-XXXXXXXX.token`` of the private directory, created
+    with mode 0600 under a name no file had (``mkstemp``: a file a killed run left behind is
+    never reused nor overwritten).
 
-    :raises InvalidArgumentError: the file exists already (another run of this process id?).
+    :returns: the file's path.
     """
-    path = Path(private_dir()) / f"{stem}.token"
-    try:
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
-    except FileExistsError:
-        raise InvalidArgumentError(
-            f"{path} exists already: remove it if no simulation of yours uses it"
-        ) from None
+    fd, name = tempfile.mkstemp(prefix=f"{stem}-", suffix=".token", dir=private_dir())
     with os.fdopen(fd, "w") as file:
         file.write(f"{token}\n")
-    return path
+    return Path(name)

@@ -30,6 +30,7 @@ from evclock.remote._token import (
     new_token,
     read_token_file,
     token_from,
+    write_token_file,
 )
 
 STRONG = "kB2n7T0qZx4LmP9sWv3YcR"  # 22 URL-safe characters: 132 bits
@@ -184,6 +185,19 @@ def test_a_token_given_twice_or_empty_is_refused(tmp_path: Path) -> None:
         token_from(path, {"EVCLOCK_TOKEN": STRONG})
     with pytest.raises(evclock.InvalidArgumentError, match="EVCLOCK_TOKEN is set but empty"):
         token_from(None, {"EVCLOCK_TOKEN": ""})
+
+
+def test_a_written_token_file_is_new_private_and_in_the_private_directory(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
+    first, second = (write_token_file(STRONG, "sim-1") for _ in range(2))
+    assert first != second  # a file left behind is never reused
+    for path in (first, second):
+        assert path.parent == tmp_path / "evclock"
+        assert re.fullmatch(r"sim-1-\w+\.token", path.name)
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600
+        assert read_token_file(path) == STRONG
 
 
 # ---------------------------------------------------------------- the command line
