@@ -46,6 +46,7 @@ from evclock.tools._cli_app import (
     render_report,
     with_exit_statuses,
 )
+from evclock.tools._cli_remote import TOKEN_FILE_HELP
 from evclock.tools._runs import parse_rtf, run_scenario
 from evclock.tools._scenarios import (
     load_scenario,
@@ -246,11 +247,7 @@ def run_command(
     ] = None,
     token_file: Annotated[
         Path | None,
-        typer.Option(
-            help="With --serve: read the clock token from this file (yours, chmod 600), or "
-            "set EVCLOCK_TOKEN; never put token= in the address (every user can read a "
-            "command line)."
-        ),
+        typer.Option(help=f"With --serve only. {TOKEN_FILE_HELP}"),
     ] = None,
     remote_controllers: Annotated[
         bool,
