@@ -239,6 +239,24 @@ def test_a_token_file_open_to_others_is_a_usage_error(tmp_path: Path) -> None:
     )
 
 
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["run", "kuka", "--quiet", "--serve", "tcp://127.0.0.1:0"],
+        ["control", "kuka", "--clock", "tcp://127.0.0.1:9"],
+    ],
+)
+def test_a_weak_token_from_the_environment_is_a_usage_error(args: list[str]) -> None:
+    code, output = wait(cli(*args, EVCLOCK_TOKEN="hunter2"))
+    assert code == 2
+    assert output.count("error:") == 1, output
+    assert " ".join(output.split()).startswith(
+        "error: the clock token is too weak: 7 characters carry at most 42 bits, and a token "
+        "needs 128 bits"
+    )
+    assert "hunter2" not in output
+
+
 def test_control_over_tcp_without_a_token_says_how_to_give_it() -> None:
     code, output = wait(cli("control", "kuka", "--clock", "tcp://127.0.0.1:9"))
     assert code == 2
