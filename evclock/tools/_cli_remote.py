@@ -345,15 +345,15 @@ def control_scenario(
             "controllers in lockstep"
         )
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
+    cls = scenario_class(name, {})
+    check_engine(cls, engine)
+    limit = _limit(cls, until)
+    scenario = _private_copy(cls, seed, engine)
     if parsed.scheme == "tcp" and token is None and parsed.token is None:
         raise InvalidArgumentError(
             f"joining the simulation at {parsed} over tcp needs its token: pass the file "
             f"`evclock run --serve` printed with --token-file PATH, or set {ENV_TOKEN}"
         )
-    cls = scenario_class(name, {})
-    check_engine(cls, engine)
-    limit = _limit(cls, until)
-    scenario = _private_copy(cls, seed, engine)
 
     async def main() -> RunReport:
         link = participant()
