@@ -321,8 +321,14 @@ _BUNDLED = f"error: evclock_sims (the bundled scenarios) {_PYBULLET_ERROR}"
             "error: the ray backend needs Ray: pip install 'evclock[ray]'",
         ),
         (
-            ("zenoh",),
+            ("cyclonedds",),
             ["run", "light_scenario.py:Light", "--ros2-clock", "--quiet"],
+            "error: evclock's ROS 2 support needs the 'ros2' extra (module 'cyclonedds' is "
+            "missing): pip install 'evclock[ros2]'",
+        ),
+        (
+            ("zenoh",),
+            ["run", "light_scenario.py:Light", "--ros2-clock", "--rmw", "zenoh", "--quiet"],
             "error: evclock's ROS 2 support needs the 'ros2' extra (module 'zenoh' is "
             "missing): pip install 'evclock[ros2]'",
         ),
