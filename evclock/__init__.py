@@ -64,6 +64,7 @@ from evclock.time._time import (
 if TYPE_CHECKING:
     from evclock import (  # noqa: F401  (the subpackages, imported on first use)
         data,
+        gym,
         hosts,
         kernel,
         outside,
@@ -131,7 +132,19 @@ __all__ = [
 
 #: Subpackages imported on first attribute access (``evclock.remote.serve``).
 _SUBPACKAGES = frozenset(
-    ("data", "hosts", "kernel", "outside", "remote", "ros2", "sources", "testing", "time", "tools")
+    (
+        "data",
+        "gym",
+        "hosts",
+        "kernel",
+        "outside",
+        "remote",
+        "ros2",
+        "sources",
+        "testing",
+        "time",
+        "tools",
+    )
 )
 
 #: Names that left this namespace in 0.2.0, and the subpackage that holds each now.

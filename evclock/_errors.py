@@ -120,6 +120,22 @@ class ScenarioError(EvClockError, RuntimeError):
     """A scenario cannot be found or loaded: an import failure, a name registered twice."""
 
 
+class AgentProtocolError(ScenarioError):
+    """A scenario cannot host a learning agent: it lacks a method of the agent protocol
+    (``observation_space``, ``action_space``, ``observe``, ``act``, ``reward``,
+    ``terminated``), or names no controller the agent can replace (see ``evclock.gym``)."""
+
+
+class ActionError(EvClockError, ValueError):
+    """An action handed to an environment or returned by a policy is not in the action
+    space: wrong type, shape or dtype, NaN, or outside the bounds (never clipped)."""
+
+
+class EnvStateError(EvClockError, RuntimeError):
+    """A Gymnasium environment is used out of order: ``step()`` before ``reset()``, after
+    the episode ended, or after ``close()``."""
+
+
 class MissingExtraError(EvClockError, ImportError):
     """An optional dependency is not installed; the message names the extra that installs it
     (``pip install 'evclock[pybullet]'``)."""

@@ -22,6 +22,7 @@ EXTRA_OF_MODULE = {
     "xxhash": "ros2",
     "cyclonedds": "ros2",
     "rosbags": "ros2",
+    "gymnasium": "gym",
 }
 
 

@@ -14,12 +14,13 @@ from __future__ import annotations
 import abc
 import asyncio
 import math
-from collections.abc import AsyncIterator, Awaitable, Coroutine
+from collections.abc import AsyncIterator, Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
+from evclock._errors import AgentProtocolError
 from evclock._extras import import_extra
 
 from ._mujoco import MuJoCoWorld
@@ -134,6 +135,10 @@ class Scenario(abc.ABC):
     """Simulated seconds the scenario needs to finish its mission (with margin)."""
     engines: ClassVar[tuple[str, ...]] = ("pybullet",)
     """The physics engines the scenario can run on (see :data:`ENGINES`)."""
+    agent_controller: ClassVar[str | None] = None
+    """The background controller (a label of :meth:`_services`) a learning agent may replace
+    (see :mod:`evclock.gym`), for a scenario that implements the agent protocol; None for one
+    that does not."""
 
     def __init__(self, world: int | MuJoCoWorld, seed: int = 0) -> None:
         """Prepare the world - a connected PyBullet client id (gravity, 1/240 s steps) or an
@@ -142,6 +147,9 @@ class Scenario(abc.ABC):
         self.rng = np.random.default_rng(seed)
         self.finished_at: float | None = None
         """Simulated seconds at which the mission ended, or None while it has not."""
+        self.replaced: dict[str, Any] = {}
+        """Controllers replaced for the next :meth:`run`: label -> a function of the clock
+        returning the coroutine that runs instead (see :meth:`replace_controller`)."""
         self.world: MuJoCoWorld | None = None
         """The MuJoCo world, on MuJoCo (None on PyBullet)."""
         self.pb: Any = None
@@ -191,12 +199,48 @@ class Scenario(abc.ABC):
         :meth:`before_step`); the clock reads the time of the step just taken."""
         return None  # nothing by default (and no hook registered)
 
+    def replace_controller(
+        self, label: str, controller: Callable[[ClockLike], Coroutine[Any, Any, None]]
+    ) -> None:
+        """Run ``controller(clock)`` instead of the background controller ``label`` (a label
+        of :meth:`_services`) in :meth:`run`: how a learning agent or a trained policy takes
+        that controller's place (see :mod:`evclock.gym`).
+
+        :raises AgentProtocolError: the scenario has no background controller ``label`` (the
+            check runs in :meth:`run`, where the controllers are made).
+        """
+        self.replaced[label] = controller
+
+    def _controllers(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
+        """The background controllers of a run, with the replaced ones swapped in."""
+        services = self._services(clock)
+        unknown = [label for label in self.replaced if label not in services]
+        if unknown:
+            for coro in services.values():
+                coro.close()  # never started: closed, so none warns it was never awaited
+            raise AgentProtocolError(
+                f"scenario {self.name!r} has no background controller "
+                f"{', '.join(map(repr, unknown))} to replace; its controllers: "
+                f"{', '.join(services) or 'none'}"
+            )
+        for label, controller in self.replaced.items():
+            services[label].close()
+            services[label] = controller(clock)
+        return services
+
     async def run(self, clock: ClockLike) -> None:
         """Run the controller stack until the mission is over (success or failure)."""
+        policy = getattr(self, "policy", "")
+        if policy and self.agent_controller is not None:
+            # A trained policy as the agent's controller (evclock run --param policy=...).
+            from evclock.gym import PolicyController
+
+            if self.agent_controller not in self.replaced:
+                self.replace_controller(self.agent_controller, PolicyController(policy, self))
         async with asyncio.TaskGroup() as group:
             services = [
                 group.create_task(coro, name=f"{self.name}.{label}")
-                for label, coro in self._services(clock).items()
+                for label, coro in self._controllers(clock).items()
             ]
             await group.create_task(self._mission(clock), name=f"{self.name}.mission")
             self.finished_at = clock.now().seconds

@@ -1,11 +1,15 @@
 """Cart-pole balanced by a discrete LQR from a seeded, perturbed start.
 
-Two concurrent controllers:
+Three concurrent controllers:
 
-* ``balance`` (50 Hz, the mission): full-state feedback ``u = -K x`` on
-  ``x = (cart position, pole angle, cart velocity, pole rate)``; returns after
-  :attr:`CartPole.hold_time` seconds, or early if the pole passes :attr:`CartPole.fail_angle`.
+* ``balance`` (50 Hz): full-state feedback ``u = -K x`` on
+  ``x = (cart position, pole angle, cart velocity, pole rate)``;
+* ``judge`` (50 Hz, the mission): returns after :attr:`CartPole.hold_time` seconds, or early
+  if the pole passes :attr:`CartPole.fail_angle`;
 * ``monitor`` (240 Hz, every physics step): records the largest pole angle and cart excursion.
+
+The cart-pole implements the agent protocol of :mod:`evclock.gym`: a learning agent (or a
+trained policy) replaces ``balance``, observing the joint states and pushing the cart.
 
 The gains come from the engine's own model: mass matrix and gravity terms of the URDF, linearised
 at upright by finite differences, discretised with a zero-order hold and fed to the discrete
@@ -24,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from evclock._extras import import_extra
+
 from ._base import ClockLike, Metric, Scenario, pybullet
 from ._mujoco import MuJoCoWorld
 
@@ -36,6 +42,10 @@ SATURATED_VELOCITY = 1e6
 """A velocity no motor reaches: a velocity motor aimed at it always pushes with its force limit."""
 
 JOINT_NAMES = ("slider_to_cart", "cart_to_pole")
+
+OBSERVATION_BOUND = (20.0, math.pi, 100.0, 100.0)
+"""The agent's observation bounds: cart position (m), pole angle (rad), cart velocity (m/s),
+pole rate (rad/s)."""
 
 
 class PyBulletCart:
@@ -210,6 +220,10 @@ class CartPole(Scenario):
     """LQR weights on cart position, pole angle, cart velocity, pole rate."""
     force_cost = 0.1
     engines = ("pybullet", "mujoco")
+    agent_controller = "balance"
+    policy = ""
+    """A trained policy that replaces ``balance`` (``module:callable`` or a ``.npz`` file of
+    :class:`evclock.gym.LinearPolicy`; see :mod:`evclock.gym`); empty: the LQR balances."""
 
     def __init__(self, world: int | MuJoCoWorld, seed: int = 0) -> None:
         """Load the cart-pole (in a PyBullet client or a MuJoCo world), free both joints, tilt
@@ -264,7 +278,7 @@ class CartPole(Scenario):
         return self.cart.joint_states()
 
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
-        return {"monitor": self._monitor(clock)}
+        return {"monitor": self._monitor(clock), "balance": self._balance(clock)}
 
     async def _monitor(self, clock: ClockLike) -> None:
         """Track the worst pole angle and cart excursion at every physics step."""
@@ -273,22 +287,63 @@ class CartPole(Scenario):
             self.max_angle = max(self.max_angle, abs(angle))
             self.max_cart_offset = max(self.max_cart_offset, abs(cart))
 
-    async def _mission(self, clock: ClockLike) -> None:
-        """Apply the LQR force every tick until the hold time is up or the pole falls."""
-        start = clock.now().nanoseconds
-        hold = round(self.hold_time * 1e9)
-        async for tick in clock.rate(self.balance_hz, name="balance"):
+    async def _balance(self, clock: ClockLike) -> None:
+        """Apply the LQR force every tick."""
+        async for _tick in clock.rate(self.balance_hz, name="balance"):
             state = np.array(self._joint_states())
-            self.balanced_for = (tick.actual.nanoseconds - start) / 1e9
-            if abs(state[1]) >= self.fail_angle or tick.actual.nanoseconds - start >= hold:
-                self._apply_force(0.0)
-                return
             force = float(np.clip(-(self.gain @ state)[0], -self.max_force, self.max_force))
             self._apply_force(force)
+
+    async def _mission(self, clock: ClockLike) -> None:
+        """Return once the hold time is up or the pole has fallen (stopping the cart)."""
+        start = clock.now().nanoseconds
+        hold = round(self.hold_time * 1e9)
+        async for tick in clock.rate(self.balance_hz, name="judge"):
+            self.balanced_for = (tick.actual.nanoseconds - start) / 1e9
+            if self.terminated() or tick.actual.nanoseconds - start >= hold:
+                self._apply_force(0.0)
+                return
 
     def _apply_force(self, force: float) -> None:
         """Push the cart with ``force`` newtons until the next command (a zero-order hold)."""
         self.cart.push(force)
+
+    # The agent protocol (evclock.gym): the agent replaces ``balance``.
+
+    @property
+    def agent_hz(self) -> float:
+        """The rate of the agent's controller: :attr:`balance_hz`."""
+        return self.balance_hz
+
+    def observation_space(self) -> Any:
+        """Cart position (m), pole angle (rad), cart velocity (m/s), pole rate (rad/s):
+        :data:`OBSERVATION_BOUND` each (the slider's range is 15 m; the pole falls past
+        :attr:`fail_angle` long before it turns over)."""
+        spaces = import_extra("gymnasium.spaces", "gym", needed_by="the cart-pole's agent")
+        bound = np.array(OBSERVATION_BOUND)
+        return spaces.Box(-bound, bound, dtype=np.float64)
+
+    def action_space(self) -> Any:
+        """The force on the cart as a fraction of :attr:`max_force`, in [-1, 1]."""
+        spaces = import_extra("gymnasium.spaces", "gym", needed_by="the cart-pole's agent")
+        return spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float64)
+
+    def observe(self) -> np.ndarray:
+        """The joint states: cart position, pole angle, cart velocity, pole rate."""
+        return np.array(self._joint_states(), dtype=np.float64)
+
+    def act(self, action: np.ndarray) -> None:
+        """Push the cart with ``action[0] *`` :attr:`max_force` newtons until the next
+        action."""
+        self._apply_force(float(action[0]) * self.max_force)
+
+    def reward(self) -> float:
+        """1 for every period the pole is still up (as Gymnasium's own cart-pole)."""
+        return 0.0 if self.terminated() else 1.0
+
+    def terminated(self) -> bool:
+        """The pole has fallen past :attr:`fail_angle`."""
+        return bool(abs(self._joint_states()[1]) >= self.fail_angle)
 
     def success(self) -> bool:
         """The pole stayed within :attr:`fail_angle` for :attr:`hold_time` seconds."""

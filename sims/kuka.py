@@ -8,6 +8,10 @@ Two concurrent controllers:
 * ``joint_control`` (100 Hz by default, ``control_hz``): slews the commanded joint positions toward
   the IK solution at a bounded joint speed and sends them as position-control targets.
 
+The KUKA implements the agent protocol of :mod:`evclock.gym`: a learning agent (or a trained
+policy) replaces ``joint_control``, observing the joints, the planner's goal, the flange and its
+target, and commanding the joint positions, while the planner keeps planning.
+
 The controllers are the same on both engines; only the arm's interface differs
 (:class:`PyBulletArm`: ``POSITION_CONTROL`` motors and PyBullet's IK; :class:`MuJoCoArm`:
 position actuators from :func:`~evclock_sims._mujoco.urdf_to_mujoco`, with gravity
@@ -21,6 +25,8 @@ from collections.abc import Coroutine, Sequence
 from typing import Any
 
 import numpy as np
+
+from evclock._extras import import_extra
 
 from ._base import ClockLike, Metric, Scenario, pybullet
 from ._mujoco import MuJoCoWorld
@@ -84,6 +90,14 @@ class PyBulletArm:
             physicsClientId=scenario.client,
         )
         return np.array(link[4])
+
+    def joint_positions(self) -> np.ndarray:
+        """The joint angles (radians)."""
+        scenario = self.scenario
+        states = scenario.pb.getJointStates(
+            self.robot, self.joints, physicsClientId=scenario.client
+        )
+        return np.array([state[0] for state in states])
 
     def command(self, positions: Sequence[float]) -> None:
         """Send joint position targets (radians), each motor limited to the maximum torque."""
@@ -170,6 +184,10 @@ class MuJoCoArm:
         position: np.ndarray = scratch.xpos[self.flange].copy()
         return position
 
+    def joint_positions(self) -> np.ndarray:
+        """The joint angles (radians)."""
+        return np.array(self.world.data.qpos[self.joints], dtype=np.float64)
+
     def command(self, positions: Sequence[float]) -> None:
         """Set the position actuators' targets (radians); they hold until the next command."""
         self.world.data.ctrl[:] = positions
@@ -228,6 +246,11 @@ class KukaReach(Scenario):
     target_jitter = 0.02
     """Metres: seeded uniform jitter added to each chosen candidate target."""
     engines = ("pybullet", "mujoco")
+    agent_controller = "joint_control"
+    policy = ""
+    """A trained policy that replaces ``joint_control`` (``module:callable`` or a ``.npz``
+    file of :class:`evclock.gym.LinearPolicy`; see :mod:`evclock.gym`); empty: the joint
+    controller slews toward the planner's goal."""
 
     def __init__(
         self, world: int | MuJoCoWorld, seed: int = 0, *, control_hz: float = 100.0
@@ -259,6 +282,8 @@ class KukaReach(Scenario):
         self.goal = np.array(REST_POSE)
         """Joint positions the planner asks for (latest IK solution)."""
         self.final_error = float("inf")
+        self.index = 0
+        """The index of the target the planner heads for."""
 
     def flange_position(self) -> np.ndarray:
         """World position of the flange link frame."""
@@ -277,9 +302,9 @@ class KukaReach(Scenario):
 
     async def _mission(self, clock: ClockLike) -> None:
         """Plan toward each target in turn; return once the last one is reached."""
-        index = 0
         within_since: float | None = None
         async for tick in clock.rate(self.planner_hz, name="planner"):
+            index = self.index
             target = self.targets[index]
             self.final_error = float(np.linalg.norm(self.flange_position() - target))
             now = tick.actual.seconds
@@ -289,7 +314,7 @@ class KukaReach(Scenario):
                 within_since = now
             elif now - within_since >= self.dwell:
                 self.reached_at.append(now)
-                index += 1
+                index = self.index = index + 1
                 within_since = None
                 if index == len(self.targets):
                     return
@@ -299,6 +324,50 @@ class KukaReach(Scenario):
     def _inverse_kinematics(self, target: np.ndarray) -> list[float]:
         """Joint positions putting the flange at ``target``, pointing down, near the rest pose."""
         return self.arm.inverse_kinematics(target)
+
+    # The agent protocol (evclock.gym): the agent replaces ``joint_control``.
+
+    @property
+    def agent_hz(self) -> float:
+        """The rate of the agent's controller: :attr:`control_hz`."""
+        return self.control_hz
+
+    def observation_space(self) -> Any:
+        """Joint angles (7, rad), the planner's goal angles (7, rad), the flange position
+        (3, m) and the current target (3, m): within +-pi rad (every joint's range is
+        narrower) and +-2 m (the arm reaches 1.3 m)."""
+        spaces = import_extra("gymnasium.spaces", "gym", needed_by="the KUKA's agent")
+        bound = np.array([math.pi] * 14 + [2.0] * 6)
+        return spaces.Box(-bound, bound, dtype=np.float64)
+
+    def action_space(self) -> Any:
+        """Joint position targets, each joint's range mapped onto [-1, 1] (-1: its lower
+        limit, 1: its upper limit)."""
+        spaces = import_extra("gymnasium.spaces", "gym", needed_by="the KUKA's agent")
+        return spaces.Box(-1.0, 1.0, shape=(len(self.joints),), dtype=np.float64)
+
+    def observe(self) -> np.ndarray:
+        """Joint angles, planner goal, flange position and current target, concatenated."""
+        target = self.targets[min(self.index, len(self.targets) - 1)]
+        parts = (self.arm.joint_positions(), self.goal, self.flange_position(), target)
+        return np.concatenate(parts).astype(np.float64)
+
+    def act(self, action: np.ndarray) -> None:
+        """Send ``action`` (see :meth:`action_space`) as the joints' position targets."""
+        lower, upper = np.array(self.lower), np.array(self.upper)
+        self.arm.command((lower + (action + 1.0) * 0.5 * (upper - lower)).tolist())
+
+    def reward(self) -> float:
+        """Minus the flange's distance to the current target, in metres (0 once all are
+        reached)."""
+        if self.terminated():
+            return 0.0
+        target = self.targets[self.index]
+        return -float(np.linalg.norm(self.flange_position() - target))
+
+    def terminated(self) -> bool:
+        """Every target has been reached."""
+        return self.success()
 
     def success(self) -> bool:
         """All targets were reached."""

@@ -10,14 +10,15 @@ import pytest
 
 import evclock
 
-LAZY = ("sources", "remote", "ros2", "data", "tools", "testing")
+LAZY = ("sources", "remote", "ros2", "data", "tools", "testing", "gym")
 
 
 def test_import_evclock_loads_no_subpackage_of_the_upper_layers_nor_heavy_dependencies() -> None:
     code = (
         "import sys, evclock\n"
         f"names = {[f'evclock.{name}' for name in LAZY]!r} + "
-        "['numpy', 'pybullet', 'typer', 'rich', 'fractions', 'ctypes', 'importlib.metadata']\n"
+        "['numpy', 'pybullet', 'gymnasium', 'typer', 'rich', 'fractions', 'ctypes', "
+        "'importlib.metadata']\n"
         "print(sorted(name for name in names if name in sys.modules))\n"
     )
     out = subprocess.run(

@@ -34,7 +34,7 @@ NS_PER_S = 1_000_000_000
 RATES: dict[str, dict[str, float]] = {
     "kuka": {"joint_control": 100.0, "planner": 10.0},
     "husky": {"drive": 50.0, "lidar": 20.0},
-    "cartpole": {"balance": 50.0, "monitor": 240.0},
+    "cartpole": {"balance": 50.0, "judge": 50.0, "monitor": 240.0},
     "fusion": {"odometry": 50.0, "camera": 15.0, "drive": 50.0},
 }
 """The named rate loops each scenario must run, and their rates."""
