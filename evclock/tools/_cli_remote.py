@@ -330,9 +330,12 @@ def control_scenario(
     until: float | None = None,
     engine: str = "pybullet",
     token: str | None = None,
+    policy: str | None = None,
 ) -> RunReport:
     """Run scenario ``name``'s controllers against the simulation served at ``clock_url``
-    (which must run the same scenario, seed and ``engine``), proving ``token`` if given."""
+    (which must run the same scenario, seed and ``engine``), proving ``token`` if given;
+    ``policy`` (a scenario's ``policy`` parameter: a trained policy, see ``evclock.gym``)
+    replaces its agent's controller."""
     from evclock.tools._runs import RunReport, _loop_reports, _Outcome, scenario_class
     from evclock.tools._scenarios import check_engine
 
@@ -345,7 +348,7 @@ def control_scenario(
             "controllers in lockstep"
         )
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
-    cls = scenario_class(name, {})
+    cls = scenario_class(name, {} if policy is None else {"policy": policy})
     check_engine(cls, engine)
     limit = _limit(cls, until)
     scenario = _private_copy(cls, seed, engine)
@@ -432,6 +435,13 @@ def control_command(
     ] = None,
     quiet: Annotated[bool, typer.Option(help="Print only errors.")] = False,
     token_file: Annotated[Path | None, typer.Option(help=TOKEN_FILE_HELP)] = None,
+    policy: Annotated[
+        str | None,
+        typer.Option(
+            help="A trained policy in place of the scenario's agent controller: a .npz of "
+            "evclock.gym.LinearPolicy or module:callable (the scenario's policy parameter)."
+        ),
+    ] = None,
 ) -> None:
     """Run a scenario's controllers in lockstep with a simulation served by another process
     (`evclock run SIM --serve ADDR --remote-controllers`; one started without
@@ -453,7 +463,13 @@ def control_command(
         check_until(until)
         token = cli_token(clock_url, "--clock", token_file)
         report = control_scenario(
-            sim, clock_url=clock_url, seed=seed, until=until, engine=engine, token=token
+            sim,
+            clock_url=clock_url,
+            seed=seed,
+            until=until,
+            engine=engine,
+            token=token,
+            policy=policy,
         )
     except EvClockError as exc:
         print_error(exc)
