@@ -5,7 +5,8 @@ Three concurrent controllers:
 * ``balance`` (50 Hz): full-state feedback ``u = -K x`` on
   ``x = (cart position, pole angle, cart velocity, pole rate)``;
 * ``judge`` (50 Hz, the mission): returns after :attr:`CartPole.hold_time` seconds, or early
-  if the pole passes :attr:`CartPole.fail_angle`;
+  if the pole passes :attr:`CartPole.fail_angle` or the cart leaves its track
+  (:attr:`CartPole.track_limit`);
 * ``monitor`` (240 Hz, every physics step): records the largest pole angle and cart excursion.
 
 The cart-pole implements the agent protocol of :mod:`evclock.gym`: a learning agent (or a
@@ -216,14 +217,17 @@ class CartPole(Scenario):
     """Radians: the pole counts as fallen beyond this."""
     max_force = 20.0
     """Newtons: cart actuator limit."""
+    track_limit = 5.0
+    """Metres: the cart counts as off its track beyond this distance from the start (the
+    slider itself allows 15 m)."""
     state_cost = (1.0, 10.0, 0.1, 0.1)
     """LQR weights on cart position, pole angle, cart velocity, pole rate."""
     force_cost = 0.1
     engines = ("pybullet", "mujoco")
     agent_controller = "balance"
     policy = ""
-    """A trained policy that replaces ``balance`` (``module:callable`` or a ``.npz`` file of
-    :class:`evclock.gym.LinearPolicy`; see :mod:`evclock.gym`); empty: the LQR balances."""
+    """A trained policy in place of balance: a .npz file of evclock.gym.LinearPolicy, or
+    module:callable (see evclock.gym). Empty: the LQR balances."""
 
     def __init__(self, world: int | MuJoCoWorld, seed: int = 0) -> None:
         """Load the cart-pole (in a PyBullet client or a MuJoCo world), free both joints, tilt
@@ -342,12 +346,19 @@ class CartPole(Scenario):
         return 0.0 if self.terminated() else 1.0
 
     def terminated(self) -> bool:
-        """The pole has fallen past :attr:`fail_angle`."""
-        return bool(abs(self._joint_states()[1]) >= self.fail_angle)
+        """The pole has fallen past :attr:`fail_angle`, or the cart has left its track
+        (:attr:`track_limit`)."""
+        cart, angle, _, _ = self._joint_states()
+        return bool(abs(angle) >= self.fail_angle or abs(cart) >= self.track_limit)
 
     def success(self) -> bool:
-        """The pole stayed within :attr:`fail_angle` for :attr:`hold_time` seconds."""
-        return self.balanced_for >= self.hold_time and self.max_angle < self.fail_angle
+        """The pole stayed within :attr:`fail_angle` for :attr:`hold_time` seconds, the cart
+        on its track."""
+        return (
+            self.balanced_for >= self.hold_time
+            and self.max_angle < self.fail_angle
+            and self.max_cart_offset < self.track_limit
+        )
 
     def _metrics(self) -> dict[str, Metric]:
         return {

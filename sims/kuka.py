@@ -248,8 +248,8 @@ class KukaReach(Scenario):
     engines = ("pybullet", "mujoco")
     agent_controller = "joint_control"
     policy = ""
-    """A trained policy that replaces ``joint_control`` (``module:callable`` or a ``.npz``
-    file of :class:`evclock.gym.LinearPolicy`; see :mod:`evclock.gym`); empty: the joint
+    """A trained policy in place of joint_control: a .npz file of evclock.gym.LinearPolicy, or
+    module:callable (see evclock.gym). Empty: the joint
     controller slews toward the planner's goal."""
 
     def __init__(

@@ -49,7 +49,9 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
     (``terminated()``: the pole fell, every target was reached); **truncated** when
     ``max_episode_seconds`` of sim time have run, or the scenario's mission ended without a
     terminal state (the cart-pole held for its hold time). ``info`` holds ``sim_time``
-    (seconds), ``seed`` (the episode's) and ``loops`` (every rate loop's statistics by name).
+    (seconds), ``seed`` (the episode's) and ``ticks`` (every rate loop's ticks so far, by
+    name); the last step of an episode adds ``loops``, every rate loop's statistics
+    (:meth:`evclock.LoopStats.as_dict`: ticks, misses, lateness).
 
     :param scenario: a registered name (``"cartpole"``), ``module:Class``, a file, or a
         scenario class implementing the agent protocol.
@@ -184,7 +186,8 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         if terminated or truncated:
             why = "terminated" if terminated else "truncated"
             self._ended = f"the episode ended ({why}) at sim time {loop.time():g} s: call reset()"
-        return observation, reward, terminated, truncated, self._info()
+        info = self._info(final=terminated or truncated)
+        return observation, reward, terminated, truncated, info
 
     def close(self) -> None:
         """End the episode and free its world; the environment cannot be used afterwards."""
@@ -279,15 +282,18 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
                 source, self._source = self._source, None
                 source.close()
 
-    def _info(self) -> dict[str, Any]:
+    def _info(self, *, final: bool = False) -> dict[str, Any]:
         loop = self._loop
         assert loop is not None
         rates = loop.clock.rates
-        return {
+        info: dict[str, Any] = {
             "sim_time": loop.time(),
             "seed": self._seed,
-            "loops": {rate.name: rate.stats.as_dict() for rate in rates},
+            "ticks": {rate.name: rate.stats.ticks for rate in rates},
         }
+        if final:  # the full statistics sort recent latenesses: once per episode
+            info["loops"] = {rate.name: rate.stats.as_dict() for rate in rates}
+        return info
 
     def __del__(self) -> None:
         # A forgotten close(): free the world and the loop's selector.

@@ -152,8 +152,9 @@ def check_action(space: Any, action: Any, *, who: str) -> Any:
     values = array.astype(space.dtype)
     if np.isnan(values).any():
         raise ActionError(f"{who}: the action holds NaN: {array.tolist()!r}")
-    outside = np.flatnonzero((values < space.low) | (values > space.high))
-    if outside.size:
+    beyond = (values < space.low) | (values > space.high)
+    if beyond.any():
+        outside = np.flatnonzero(beyond)
         i = int(outside[0])
         low, high = space.low.flat[i], space.high.flat[i]
         value, low, high = float(values.flat[i]), float(low), float(high)

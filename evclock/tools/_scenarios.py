@@ -47,7 +47,8 @@ ENTRY_POINT_GROUP = "evclock.scenarios"
 
 _REQUIRED_METHODS = ("run", "success", "summary", "state_vector")
 _REQUIRED_ATTRIBUTES = ("name", "description", "default_until")
-_NOT_PARAMETERS = frozenset(_REQUIRED_ATTRIBUTES)
+# agent_controller: which controller an agent replaces (evclock.gym), not a tunable.
+_NOT_PARAMETERS = frozenset((*_REQUIRED_ATTRIBUTES, "agent_controller"))
 ParamValue = bool | int | float | str
 
 
@@ -242,7 +243,7 @@ def parameters(cls: type[Any]) -> dict[str, ParamValue]:
     """The tunable parameters of scenario class ``cls`` and their defaults, sorted by name.
 
     They are the public class attributes (on ``cls`` or a base) holding a bool, int, float or
-    str, except ``name``, ``description`` and ``default_until``.
+    str, except ``name``, ``description``, ``default_until`` and ``agent_controller``.
 
     :param cls: a scenario class (see :func:`load_scenario`).
     :returns: the default value of each parameter, by name.
