@@ -7,6 +7,7 @@ The MuJoCo halves run on every supported Python; the PyBullet halves need PyBull
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 from typing import Any
 
 import gymnasium
@@ -297,3 +298,24 @@ def test_import_evclock_gym_registers_the_bundled_environments() -> None:
         assert env_id in gymnasium.registry
     with pytest.raises(evclock.InvalidArgumentError, match="registered already"):
         evclock.gym.register("evclock/CartPole-v0", "cartpole")
+
+
+def test_record_writes_each_episode_to_its_own_mcap_file(tmp_path: Path) -> None:
+    from evclock.tools import read_trace
+
+    env = ScenarioEnv("cartpole", record=tmp_path / "runs" / "cartpole.mcap")
+    (tmp_path / "runs").mkdir()
+    for seed in (1, 2):
+        env.reset(seed=seed)
+        for _ in range(10):
+            env.step(np.zeros(1))
+    env.close()
+    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == [
+        "cartpole-0.mcap",
+        "cartpole-1.mcap",
+    ]
+    for index, seed in enumerate((1, 2)):
+        trace = read_trace(tmp_path / "runs" / f"cartpole-{index}.mcap")
+        assert trace.metadata["evclock.run"]["seed"] == seed
+        assert trace.metadata["evclock.run"]["scenario"] == "cartpole"
+        assert trace.topic("/evclock/state")
