@@ -12,14 +12,17 @@ For each bundled environment on MuJoCo (``evclock/CartPole-v0``: 50 Hz agent, 24
   arithmetic as ``clock.rate``), and observes. Nothing else runs: no event loop, none of the
   scenario's other controllers (the cart-pole's 240 Hz monitor and 50 Hz judge, the KUKA's
   10 Hz IK planner);
+* **+ same work**: the same, also doing the other controllers' work inline at their rates (the
+  cart-pole's monitor at every physics step and its judge at every tick, the KUKA's IK planner
+  at 10 Hz): what the evclock environment does, without the loop;
 * **evclock**: ``gymnasium.make(id, engine="mujoco")``: the scenario's other controllers, timers
   and the physics on an evclock loop, one period of the agent's controller per step.
 
-Reported: steps per CPU second and per wall second (best of the alternating rounds), and the
-ratio evclock / hand-written. Then an async vector environment of the cart-pole with 1 and 2
-worker processes: total steps per wall second (its ended episodes reset in the workers). The
-policy: a fixed linear one balancing the cart-pole; zero actions (mid-range joints) on the
-KUKA.
+Reported: steps per CPU second and per wall second (best of the alternating rounds), the
+ratios to the minimal environment, and evclock's CPU ratio to the one doing the same work.
+Then an async vector environment of the cart-pole with 1 and 2 worker processes: total steps
+per wall second (its ended episodes reset in the workers). The policy: a fixed linear one
+balancing the cart-pole; zero actions (mid-range joints) on the KUKA.
 """
 
 from __future__ import annotations
@@ -41,10 +44,14 @@ ENVS = {"evclock/CartPole-v0": "cartpole", "evclock/KukaReach-v0": "kuka"}
 
 
 class HandWritten(gymnasium.Env[Any, Any]):
-    """The minimal environment: action, ``mj_step`` to the next deadline, observation."""
+    """The minimal environment: action, ``mj_step`` to the next deadline, observation; with
+    ``same_work``, also the scenario's other controllers' work, called inline at their rates
+    (the cart-pole's monitor at every physics step and its judge at every tick, the KUKA's
+    IK planner at 10 Hz)."""
 
-    def __init__(self, scenario_name: str) -> None:
+    def __init__(self, scenario_name: str, *, same_work: bool = False) -> None:
         self.name = scenario_name
+        self.same_work = same_work
         self.scenario: Any = None
         self.reset(seed=0)
         self.observation_space = self.scenario.observation_space()
@@ -67,14 +74,32 @@ class HandWritten(gymnasium.Env[Any, Any]):
         return self.scenario.observe(), {}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
-        self.scenario.act(np.asarray(action, dtype=np.float64))
+        scenario = self.scenario
+        scenario.act(np.asarray(action, dtype=np.float64))
         self.tick += 1
         # The k-th deadline: the first physics step at or after k / hz (exact integers).
         due = -((-self.tick * PHYSICS_HZ) // round(self.hz))
-        mujoco.mj_step(self.model, self.data, due - self.physics_steps)
+        if not self.same_work:
+            mujoco.mj_step(self.model, self.data, due - self.physics_steps)
+        elif self.name == "cartpole":
+            for _ in range(due - self.physics_steps):
+                mujoco.mj_step(self.model, self.data)
+                cart, angle, _, _ = scenario._joint_states()  # the monitor's work
+                scenario.max_angle = max(scenario.max_angle, abs(angle))
+                scenario.max_cart_offset = max(scenario.max_cart_offset, abs(cart))
+            scenario.terminated()  # the judge's work
+        else:
+            for step in range(self.physics_steps, due):
+                if step % (PHYSICS_HZ // 10) == 0:  # the planner's 10 Hz deadlines
+                    target = scenario.targets[scenario.index]
+                    scenario.final_error = float(
+                        np.linalg.norm(scenario.flange_position() - target)
+                    )
+                    scenario.goal = np.array(scenario._inverse_kinematics(target))
+                mujoco.mj_step(self.model, self.data)
         self.physics_steps = due
-        terminated = bool(self.scenario.terminated())
-        return self.scenario.observe(), float(self.scenario.reward()), terminated, False, {}
+        terminated = bool(scenario.terminated())
+        return scenario.observe(), float(scenario.reward()), terminated, False, {}
 
 
 BALANCE = np.array([0.0, 3.0, 0.0, 0.5])
@@ -142,6 +167,7 @@ def main() -> None:
     for env_id, name in ENVS.items():
         envs = {
             "hand-written": HandWritten(name),
+            "+ same work": HandWritten(name, same_work=True),
             "evclock": gymnasium.make(env_id, engine="mujoco", max_episode_seconds=1e6),
         }
         best = {variant: (0.0, 0.0) for variant in envs}
@@ -150,11 +176,14 @@ def main() -> None:
                 cpu, wall = measure(env, args.steps)
                 best[variant] = (max(best[variant][0], cpu), max(best[variant][1], wall))
         base = best["hand-written"]
+        same = best["+ same work"]
         for variant, (cpu, wall) in best.items():
             print(
                 f"{env_id:<22}{variant:<14}{cpu:>13,.0f}{cpu / base[0]:>8.3f}"
                 f"{wall:>14,.0f}{wall / base[1]:>8.3f}"
             )
+        evclock_cpu = best["evclock"][0]
+        print(f"{'':<22}evclock / hand-written with the same work: {evclock_cpu / same[0]:.3f}")
         for env in envs.values():
             env.close()
     rates = {workers: vector_rate(workers, args.vector_steps) for workers in (1, 2)}

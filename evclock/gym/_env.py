@@ -4,11 +4,11 @@ its controllers while everything else keeps running on sim time.
 How a step runs. Each episode has its own world and its own :class:`~evclock.SimEventLoop`
 (time source: the engine's physics). The scenario runs on that loop as ``evclock run`` runs
 it, except that its agent controller is replaced by a rate loop at the same rate and with the
-same name which, at each tick, observes and hands the observation out. ``step(action)``
-applies the action (at the sim time of the last observation: it takes effect at the next
-physics step, as the replaced controller's command would), then runs the loop with
-``run_until_complete`` until the next tick has observed: exactly one period of physics, other
-controllers and timers. The loop stops there, without moving time any further.
+same name which, at each tick, observes and stops the loop. ``step(action)`` applies the
+action (at the sim time of the last observation: it takes effect at the next physics step, as
+the replaced controller's command would), then runs the loop (``run_forever``) until the next
+tick has observed: exactly one period of physics, other controllers and timers. The loop
+stops at the end of that iteration, without moving time any further.
 
 ``reset()`` builds a new world and loop (with the episode's seed) rather than jumping the old
 one's sim time backwards: a fresh world is exactly the state ``evclock run`` starts from (the
@@ -34,7 +34,7 @@ import_extra("gymnasium", "gym", needed_by="evclock.gym")  # the extra's error, 
 
 import gymnasium  # noqa: E402
 
-_ENDED = object()  # what the waiter holds when the scenario's run ended instead
+_ENDED = object()  # the observation of a period that ended with the scenario's run
 
 
 class ScenarioEnv(gymnasium.Env[Any, Any]):
@@ -114,7 +114,7 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         self._loop: SimEventLoop | None = None
         self._task: asyncio.Task[None] | None = None
         self._recorder: Any = None
-        self._waiter: asyncio.Future[Any] | None = None
+        self._observation: Any = _ENDED
         self._ended: str | None = "reset() was not called yet"
         self._closed = False
         self.scenario: Any = None
@@ -223,34 +223,29 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         self._ended = None
 
     async def _agent(self, clock: Any) -> None:
-        """The agent's controller: at each tick, hand the observation to ``step()``."""
-        scenario = self.scenario
+        """The agent's controller: at each tick, observe and stop the loop (``step()`` and
+        ``reset()`` run it until then)."""
+        scenario, loop = self.scenario, self._loop
+        assert loop is not None
         async for _tick in clock.rate(self.hz, name=self.controller):
-            waiter = self._waiter
-            assert waiter is not None, "the loop runs only inside step() and reset()"
-            waiter.set_result(scenario.observe())
+            self._observation = scenario.observe()
+            loop.stop()  # at the end of this iteration: no time passes before it
 
     def _run_ended(self, task: asyncio.Task[None]) -> None:
-        waiter = self._waiter
-        if waiter is not None and not waiter.done():
-            waiter.set_result(_ENDED)
+        if self._loop is not None:
+            self._loop.stop()
 
     def _run_period(self) -> Any:
         """Run the loop until the agent's next tick has observed (or the run ended)."""
         loop, task = self._loop, self._task
         assert loop is not None
         assert task is not None
+        self._observation = _ENDED
+        while self._observation is _ENDED and not task.done():
+            loop.run_forever()
         if task.done():
             self._raise_if_failed(task)
-            return _ENDED
-        waiter = self._waiter = loop.create_future()
-        try:
-            loop.run_until_complete(waiter)
-        finally:
-            self._waiter = None
-        if task.done():
-            self._raise_if_failed(task)
-        return waiter.result()
+        return self._observation
 
     def _task_done(self) -> bool:
         return self._task is not None and self._task.done()

@@ -140,7 +140,7 @@ def check_action(space: Any, action: Any, *, who: str) -> Any:
         array = np.asarray(action)
     except (TypeError, ValueError) as exc:
         raise ActionError(f"{who}: the action is not an array of numbers ({exc})") from None
-    if array.dtype.kind not in "iuf" or array.dtype == np.bool_:
+    if array.dtype.kind not in "iuf":
         raise ActionError(
             f"{who}: the action must be real numbers, got dtype {array.dtype} ({action!r})"
         )
@@ -150,18 +150,17 @@ def check_action(space: Any, action: Any, *, who: str) -> Any:
             f"{space.shape}"
         )
     values = array.astype(space.dtype)
+    inside = (values >= space.low) & (values <= space.high)  # False for NaN too
+    if inside.all():
+        return values
     if np.isnan(values).any():
         raise ActionError(f"{who}: the action holds NaN: {array.tolist()!r}")
-    beyond = (values < space.low) | (values > space.high)
-    if beyond.any():
-        outside = np.flatnonzero(beyond)
-        i = int(outside[0])
-        low, high = space.low.flat[i], space.high.flat[i]
-        value, low, high = float(values.flat[i]), float(low), float(high)
-        raise ActionError(
-            f"{who}: action[{i}] = {value!r} is outside the action space's bounds "
-            f"[{low!r}, {high!r}] ({outside.size} value(s) outside; actions are never "
-            "clipped: clip them in the policy, or wrap the environment in "
-            "gymnasium.wrappers.ClipAction)"
-        )
-    return values
+    outside = np.flatnonzero(~inside)
+    i = int(outside[0])
+    value, low, high = float(values.flat[i]), float(space.low.flat[i]), float(space.high.flat[i])
+    raise ActionError(
+        f"{who}: action[{i}] = {value!r} is outside the action space's bounds "
+        f"[{low!r}, {high!r}] ({outside.size} value(s) outside; actions are never "
+        "clipped: clip them in the policy, or wrap the environment in "
+        "gymnasium.wrappers.ClipAction)"
+    )
