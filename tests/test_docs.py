@@ -39,7 +39,7 @@ def test_every_public_name_has_a_docstring_and_is_in_the_api_reference() -> None
 def test_the_public_modules_are_those_with_an_all() -> None:
     coverage = _coverage()
     public = {"evclock", *(f"evclock.{name}" for name in ("time", "sources", "remote", "ros2"))}
-    public |= {"evclock.data", "evclock.tools", "evclock.testing.plugin"}
+    public |= {"evclock.data", "evclock.tools", "evclock.gym", "evclock.testing.plugin"}
     assert set(coverage.PUBLIC_MODULES) == public
     assert set(evclock.__all__) == set(coverage.public_names()["evclock"])
 

@@ -24,6 +24,7 @@ MODULES = [
     "evclock.tools",
     "evclock.ros2",
     "evclock.time",
+    "evclock.gym",
 ]
 
 RETURNS = re.compile(r":returns?:|\bReturns:|\breturns?\b", re.IGNORECASE)

@@ -32,6 +32,7 @@ PUBLIC_MODULES = (
     "evclock.ros2",
     "evclock.data",
     "evclock.tools",
+    "evclock.gym",
     "evclock.testing.plugin",
 )
 

@@ -77,6 +77,8 @@ def load_policy(spec: str | Path) -> Policy:
     """The policy ``spec`` names: a ``.npz`` file of :class:`LinearPolicy`, or
     ``module:attribute`` naming a callable (a function, or an object with ``__call__``).
 
+    :param spec: the reference.
+    :returns: the policy, a callable observation -> action.
     :raises InvalidArgumentError: a missing or malformed file, or a malformed reference.
     :raises ScenarioError: the module cannot be imported or lacks the attribute.
     :raises InvalidTypeError: the attribute is not callable.
