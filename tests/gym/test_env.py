@@ -319,3 +319,19 @@ def test_record_writes_each_episode_to_its_own_mcap_file(tmp_path: Path) -> None
         assert trace.metadata["evclock.run"]["seed"] == seed
         assert trace.metadata["evclock.run"]["scenario"] == "cartpole"
         assert trace.topic("/evclock/state")
+
+
+def test_a_scenario_becomes_an_environment_with_one_call() -> None:
+    from evclock_sims import CartPole
+
+    evclock.gym.register("tests/ShortCartPole-v0", CartPole, params={"hold_time": 0.1})
+    env = gymnasium.make("tests/ShortCartPole-v0", engine="mujoco")
+    env.reset(seed=0)
+    steps = 0
+    truncated = False
+    while not truncated:
+        _, _, terminated, truncated, _ = env.step(np.zeros(1))
+        assert not terminated
+        steps += 1
+    assert steps == 5  # the mission's 0.1 s at 50 Hz
+    env.close()
