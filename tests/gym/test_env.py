@@ -17,6 +17,7 @@ from gymnasium.utils.env_checker import check_env
 
 import evclock.gym
 from evclock.gym import ActionError, AgentProtocolError, EnvStateError, ScenarioEnv
+from evclock_sims import Scenario
 
 ENVS = ("evclock/CartPole-v0", "evclock/KukaReach-v0")
 ENGINES = ("mujoco", pytest.param("pybullet", marks=pytest.mark.pybullet))
@@ -79,7 +80,9 @@ def test_a_step_runs_exactly_one_period_of_the_replaced_controller(
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("env_id", ENVS)
 def test_same_seed_and_actions_give_bit_identical_episodes(env_id: str, engine: str) -> None:
-    first = rollout(gymnasium.make(env_id, engine=engine), seed=3, steps=40)
+    first_env = gymnasium.make(env_id, engine=engine)
+    first = rollout(first_env, seed=3, steps=40)
+    first_env.close()
     env = gymnasium.make(env_id, engine=engine)
     rollout(env, seed=5, steps=10)  # another episode first: reset leaves nothing behind
     second = rollout(env, seed=3, steps=40)
@@ -87,6 +90,7 @@ def test_same_seed_and_actions_give_bit_identical_episodes(env_id: str, engine: 
     assert first["rewards"] == second["rewards"]
     assert first["state"] == second["state"]
     other = rollout(env, seed=4, steps=40)  # another seed: another start or other targets
+    env.close()
     assert other["observations"][0].tobytes() != first["observations"][0].tobytes()
 
 
@@ -96,12 +100,16 @@ def test_unseeded_resets_continue_the_seeded_generator() -> None:
         found += [env.reset()[1]["seed"] for _ in range(3)]
         return found
 
-    a = seeds(ScenarioEnv("cartpole"))
-    b = seeds(ScenarioEnv("cartpole"))
-    assert a == b
-    assert a[0] == 11
-    assert len(set(a)) == 4
-    assert ScenarioEnv("cartpole", seed=9).reset()[1]["seed"] == 9
+    envs = [ScenarioEnv("cartpole"), ScenarioEnv("cartpole"), ScenarioEnv("cartpole", seed=9)]
+    try:
+        a, b = seeds(envs[0]), seeds(envs[1])
+        assert a == b
+        assert a[0] == 11
+        assert len(set(a)) == 4
+        assert envs[2].reset()[1]["seed"] == 9
+    finally:
+        for env in envs:
+            env.close()
 
 
 def test_the_standard_wrappers_work() -> None:
@@ -138,6 +146,7 @@ def test_the_time_limit_truncates_on_sim_time() -> None:
     assert outcomes == [(False, False)] * 4 + [(False, True)]
     with pytest.raises(EnvStateError) as info:
         env.step(np.zeros(7))
+    env.close()
     assert str(info.value) == (
         "step() needs a running episode, but the episode ended (truncated) at sim time "
         "0.05 s: call reset()"
@@ -157,6 +166,7 @@ def test_the_mission_ending_without_a_terminal_state_truncates() -> None:
         _, reward, terminated, truncated, info = env.step(action)
         done = terminated or truncated
         steps += 1
+    env.close()
     assert (terminated, truncated, reward) == (False, True, 1.0)
     assert steps == 5
     assert info["sim_time"] == pytest.approx(0.1, abs=1 / 240)
@@ -265,12 +275,33 @@ def test_a_bad_action_is_refused_naming_what_is_wrong(
     cartpole.step(np.zeros(1))  # the episode goes on
 
 
+class WithoutAgent(Scenario):
+    """A scenario on MuJoCo without the agent protocol."""
+
+    name = "without_agent"
+    description = "no agent protocol"
+    default_until = 1.0
+    engines = ("mujoco",)
+
+    def _services(self, clock: Any) -> dict[str, Any]:
+        return {}
+
+    async def _mission(self, clock: Any) -> None:
+        return None
+
+    def success(self) -> bool:
+        return True
+
+    def _metrics(self) -> dict[str, Any]:
+        return {}
+
+
 def test_a_scenario_without_the_protocol_is_refused() -> None:
     with pytest.raises(AgentProtocolError) as info:
-        ScenarioEnv("fusion", engine="pybullet")
+        ScenarioEnv(WithoutAgent)
     assert str(info.value) == (
-        "scenario 'fusion' does not implement the agent protocol of evclock.gym: it lacks "
-        "observation_space, action_space, observe, act, reward, terminated, agent_hz; "
+        "scenario 'without_agent' does not implement the agent protocol of evclock.gym: it "
+        "lacks observation_space, action_space, observe, act, reward, terminated, agent_hz; "
         "implement them (see the guide 'Reinforcement learning', 'The agent protocol')"
     )
 

@@ -203,6 +203,8 @@ def test_a_file_that_is_not_a_linear_policy_is_refused(tmp_path: Path) -> None:
 
 
 def test_a_policy_for_a_scenario_without_the_protocol_is_refused() -> None:
+    from test_env import WithoutAgent
+
     with pytest.raises(evclock.InvalidArgumentError) as info:
-        run_scenario("husky", params={"policy": "x.npz"})
-    assert str(info.value).startswith("scenario 'husky' has no parameter 'policy'")
+        run_scenario(WithoutAgent, engine="mujoco", params={"policy": "x.npz"})
+    assert str(info.value).startswith("scenario 'without_agent' has no parameter 'policy'")
