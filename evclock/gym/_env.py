@@ -289,8 +289,3 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         if final:  # the full statistics sort recent latenesses: once per episode
             info["loops"] = {rate.name: rate.stats.as_dict() for rate in rates}
         return info
-
-    def __del__(self) -> None:
-        # A forgotten close(): free the world and the loop's selector.
-        if not getattr(self, "_closed", True):
-            self.close()
