@@ -14,6 +14,9 @@ from typing import Any, ClassVar, Protocol, runtime_checkable
 import numpy as np
 
 from evclock._errors import ActionError, AgentProtocolError
+from evclock._extras import import_extra
+
+Box = import_extra("gymnasium.spaces", "gym", needed_by="evclock.gym").Box
 
 PROTOCOL_METHODS = ("observation_space", "action_space", "observe", "act", "reward", "terminated")
 """The methods of the agent protocol, in the order :class:`AgentScenario` lists them."""
@@ -130,9 +133,7 @@ def check_action(space: Any, action: Any, *, who: str) -> Any:
     :returns: the action, a new array of the box's dtype for a ``Box``.
     :raises ActionError: the action is not in the space; the message says why.
     """
-    from gymnasium import spaces
-
-    if not isinstance(space, spaces.Box):
+    if not isinstance(space, Box):
         if not space.contains(action):
             raise ActionError(f"{who}: action {action!r} is not in the action space {space}")
         return action
