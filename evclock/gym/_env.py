@@ -128,7 +128,6 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
             self.action_space = probe.action_space()
         finally:
             source.close()
-        self._period_ns = round(1e9 / self.hz)
         self._limit_ns = round(self.max_episode_seconds * 1e9)
 
     # ------------------------------------------------------------------ episodes
