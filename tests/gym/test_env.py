@@ -366,3 +366,25 @@ def test_a_scenario_becomes_an_environment_with_one_call() -> None:
         steps += 1
     assert steps == 5  # the mission's 0.1 s at 50 Hz
     env.close()
+
+
+def test_without_gymnasium_evclock_gym_names_the_extra() -> None:
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "sys.modules['gymnasium'] = None\n"
+        "import evclock\n"
+        "try:\n"
+        "    import evclock.gym\n"
+        "except evclock.MissingExtraError as exc:\n"
+        "    print(exc.extra, exc)\n"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120
+    )
+    assert out.stdout == (
+        "gym evclock.gym needs 'gymnasium', which is not installed; install it with: "
+        "pip install 'evclock[gym]'\n"
+    )
