@@ -195,12 +195,19 @@ def verdict(ok: bool) -> str:
     return "PASS" if ok else "MISS"
 
 
-def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    """Command-line options."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
+def workload_parser(doc: str | None) -> argparse.ArgumentParser:
+    """A parser described by ``doc``'s first line, with the workload's options (also
+    profile_hot_path.py's)."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0] if doc else None)
     p.add_argument("--tasks", type=int, default=1000, help="concurrent tasks (default 1000)")
     p.add_argument("--sleeps", type=int, default=300, help="sleeps per task (default 300)")
     p.add_argument("--seed", type=int, default=1, help="random seed for durations (default 1)")
+    return p
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    """Command-line options."""
+    p = workload_parser(__doc__)
     p.add_argument("--repeat", type=int, default=3, help="runs per variant; best kept (3)")
     p.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     args = p.parse_args(argv)

@@ -25,29 +25,21 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
-import time
-from fractions import Fraction
 
 import numpy as np
 import pybullet as p
+from _kuka_work import PHYSICS_HZ, PLANNER_HZ, ReachWork, clocks, due_steps
 
 import evclock
-from evclock_sims.kuka import REST_POSE, KukaReach
-
-PHYSICS_HZ = 240
-PLANNER_HZ = 10
+from evclock_sims.kuka import KukaReach
 
 
-class Controllers:
+class Controllers(ReachWork):
     """The control work both variants do, on one KUKA world."""
 
     def __init__(self, client: int, control_hz: float) -> None:
-        self.arm = KukaReach(client, seed=0, control_hz=control_hz)
-        self.command = np.array(REST_POSE)
-        self.max_step = self.arm.max_joint_speed / control_hz
+        super().__init__(KukaReach(client, seed=0, control_hz=control_hz), control_hz)
         self.forces = [self.arm.max_joint_torque] * len(self.arm.joints)
-        self.target_index = 0
-        self.plans = 0
 
     def control(self) -> None:
         arm = self.arm
@@ -61,36 +53,13 @@ class Controllers:
             physicsClientId=arm.client,
         )
 
-    def plan(self) -> None:
-        arm = self.arm
-        target = arm.targets[self.target_index]
-        if np.linalg.norm(arm.flange_position() - target) < arm.tolerance:
-            self.target_index = (self.target_index + 1) % len(arm.targets)
-            target = arm.targets[self.target_index]
-        arm.goal = np.array(arm._inverse_kinematics(target))
-        self.plans += 1
-
 
 def ticks_due(hz: float, steps: int) -> list[bool]:
     """Per physics step: is a rate tick due, with clock.rate's integer deadlines (tick 0 at 0)."""
-    period = Fraction(10**9) / Fraction(hz)
-    step_ns = Fraction(10**9, PHYSICS_HZ)
     due = [False] * steps
-    index = 0
-    while True:
-        deadline = index * period.numerator // period.denominator
-        # The first step whose (floor) time is >= the deadline (sleeps quantise up).
-        step = -(-deadline * step_ns.denominator // step_ns.numerator)
-        while step * step_ns.numerator // step_ns.denominator < deadline:
-            step += 1
-        if step >= steps:
-            return due
+    for step in due_steps(hz, steps):
         due[step] = True
-        index += 1
-
-
-def _clocks() -> tuple[float, float]:
-    return time.perf_counter(), time.process_time()
+    return due
 
 
 def run_synchronous(control_hz: float, seconds: float) -> tuple[float, float, int]:
@@ -100,14 +69,14 @@ def run_synchronous(control_hz: float, seconds: float) -> tuple[float, float, in
         steps = round(seconds * PHYSICS_HZ)
         control_due = ticks_due(control_hz, steps)
         plan_due = ticks_due(PLANNER_HZ, steps)
-        wall0, cpu0 = _clocks()
+        wall0, cpu0 = clocks()
         for step in range(steps):
             if control_due[step]:
                 ctl.control()
             if plan_due[step]:
                 ctl.plan()
             p.stepSimulation(physicsClientId=client)
-        wall1, cpu1 = _clocks()
+        wall1, cpu1 = clocks()
         return wall1 - wall0, cpu1 - cpu0, steps
     finally:
         p.disconnect(client)
@@ -124,14 +93,14 @@ def run_evclock(
             work()  # type: ignore[operator]
 
     async def main() -> tuple[float, float, int]:
-        wall0, cpu0 = _clocks()
+        wall0, cpu0 = clocks()
         async with asyncio.TaskGroup() as tg:
             control = tg.create_task(every(control_hz, ctl.control))
             planner = tg.create_task(every(PLANNER_HZ, ctl.plan))
             await evclock.clock().sleep(seconds)
             control.cancel()
             planner.cancel()
-        wall1, cpu1 = _clocks()
+        wall1, cpu1 = clocks()
         return wall1 - wall0, cpu1 - cpu0, source.step_index
 
     return evclock.run(main(), source=source, rtf=rtf)

@@ -33,66 +33,28 @@ import importlib.util
 import sys
 import time
 from collections.abc import Callable
-from fractions import Fraction
 from typing import Any
 
 import mujoco
 import numpy as np
+from _kuka_work import PHYSICS_HZ, PLANNER_HZ, ReachWork, clocks, due_steps
 
 import evclock
 from evclock_sims import KukaReach, MuJoCoWorld
 from evclock_sims.kuka import REST_POSE
 
-PHYSICS_HZ = 240
-PLANNER_HZ = 10
 
-
-class Controllers:
+class Controllers(ReachWork):
     """The control work both MuJoCo variants do, on one KUKA world."""
 
     def __init__(self, control_hz: float) -> None:
         self.world = MuJoCoWorld()
-        self.arm = KukaReach(self.world, seed=0, control_hz=control_hz)
-        self.command = np.array(REST_POSE)
-        self.max_step = self.arm.max_joint_speed / control_hz
-        self.target_index = 0
-        self.plans = 0
+        super().__init__(KukaReach(self.world, seed=0, control_hz=control_hz), control_hz)
 
     def control(self) -> None:
         arm = self.arm
         self.command += np.clip(arm.goal - self.command, -self.max_step, self.max_step)
         arm.arm.command(self.command.tolist())
-
-    def plan(self) -> None:
-        arm = self.arm
-        target = arm.targets[self.target_index]
-        if np.linalg.norm(arm.flange_position() - target) < arm.tolerance:
-            self.target_index = (self.target_index + 1) % len(arm.targets)
-            target = arm.targets[self.target_index]
-        arm.goal = np.array(arm._inverse_kinematics(target))
-        self.plans += 1
-
-
-def due_steps(hz: float, steps: int) -> list[int]:
-    """The physics steps (0-based, before stepping) at which a rate ticks, with clock.rate's
-    integer deadlines: tick i is due at the first step whose (floor) time is >= i x period."""
-    period = Fraction(10**9) / Fraction(hz)
-    step_ns = Fraction(10**9, PHYSICS_HZ)
-    due = []
-    index = 0
-    while True:
-        deadline = index * period.numerator // period.denominator
-        step = -(-deadline * step_ns.denominator // step_ns.numerator)
-        while step * step_ns.numerator // step_ns.denominator < deadline:
-            step += 1
-        if step >= steps:
-            return due
-        due.append(step)
-        index += 1
-
-
-def _clocks() -> tuple[float, float]:
-    return time.perf_counter(), time.process_time()
 
 
 def run_hand_written(control_hz: float, seconds: float, planner: bool) -> tuple[float, float, int]:
@@ -107,7 +69,7 @@ def run_hand_written(control_hz: float, seconds: float, planner: bool) -> tuple[
             work.setdefault(step, []).append(ctl.plan)
     marks = sorted(work)
     step_fn = mujoco.mj_step
-    wall0, cpu0 = _clocks()
+    wall0, cpu0 = clocks()
     done = 0
     for step in marks:
         if step > done:
@@ -117,7 +79,7 @@ def run_hand_written(control_hz: float, seconds: float, planner: bool) -> tuple[
             fn()
     if done < steps:
         step_fn(model, data, steps - done)
-    wall1, cpu1 = _clocks()
+    wall1, cpu1 = clocks()
     return wall1 - wall0, cpu1 - cpu0, steps
 
 
@@ -130,7 +92,7 @@ def run_evclock(control_hz: float, seconds: float, planner: bool) -> tuple[float
             work()
 
     async def main() -> tuple[float, float, int]:
-        wall0, cpu0 = _clocks()
+        wall0, cpu0 = clocks()
         async with asyncio.TaskGroup() as tg:
             tasks = [tg.create_task(every(control_hz, ctl.control))]
             if planner:
@@ -138,7 +100,7 @@ def run_evclock(control_hz: float, seconds: float, planner: bool) -> tuple[float
             await evclock.clock().sleep(seconds)
             for task in tasks:
                 task.cancel()
-        wall1, cpu1 = _clocks()
+        wall1, cpu1 = clocks()
         return wall1 - wall0, cpu1 - cpu0, source.step_index
 
     result: tuple[float, float, int] = evclock.run(main(), source=source)

@@ -18,15 +18,12 @@ import pstats
 import sys
 from collections.abc import Sequence
 
-from fanout import make_workload, run_clock_sleep
+from fanout import make_workload, run_clock_sleep, workload_parser
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     """Command-line options."""
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0] if __doc__ else None)
-    p.add_argument("--tasks", type=int, default=1000, help="concurrent tasks (default 1000)")
-    p.add_argument("--sleeps", type=int, default=300, help="sleeps per task (default 300)")
-    p.add_argument("--seed", type=int, default=1, help="random seed for durations (default 1)")
+    p = workload_parser(__doc__)
     p.add_argument("--top", type=int, default=15, help="functions to list (default 15)")
     p.add_argument("--out", metavar="PATH", help="also dump the raw profile here")
     return p.parse_args(argv)

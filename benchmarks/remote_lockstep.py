@@ -635,15 +635,13 @@ def kuka_split(folder: Path, root: Path, hz: float) -> KukaRun:
         if status:
             raise SystemExit(f"KUKA at {hz:g} Hz, {what}: status {status}\n{output}")
 
-    done = subprocess.run(
-        [*CLI, "run", spec, "--quiet", "--json", str(inproc)],
-        cwd=root,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    check("in-process run", done.returncode, done.stdout + done.stderr)
+    def run_cli(what: str, *args: str) -> None:
+        done = subprocess.run(
+            [*CLI, *args], cwd=root, env=env, capture_output=True, text=True, timeout=600
+        )
+        check(what, done.returncode, done.stdout + done.stderr)
+
+    run_cli("in-process run", "run", spec, "--quiet", "--json", str(inproc))
     url = f"unix://{folder / f'kuka-{hz:g}.sock'}"
     log = folder / "kuka-served.log"
     with log.open("wb") as out:
@@ -655,15 +653,7 @@ def kuka_split(folder: Path, root: Path, hz: float) -> KukaRun:
             stdout=out,
             stderr=subprocess.STDOUT,
         )  # fmt: skip
-    done = subprocess.run(
-        [*CLI, "control", spec, "--quiet", "--clock", url, "--json", str(joined)],
-        cwd=root,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    check("evclock control", done.returncode, done.stdout + done.stderr)
+    run_cli("evclock control", "control", spec, "--quiet", "--clock", url, "--json", str(joined))
     check("evclock run --serve", server.wait(timeout=600), log.read_text())
     reports = [json.loads(path.read_text()) for path in (inproc, served, joined)]
     rates = [r["sim_time_s"] * 240 / r["wall_time_s"] for r in reports[:2]]
@@ -723,28 +713,18 @@ def main() -> None:
     parser.add_argument("--participants", type=int, nargs="+", default=[1, 4, 16])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--kuka", action=argparse.BooleanOptionalAction, default=True)
-    parser.add_argument(
-        "--instructions",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="also count instructions per round under callgrind (needs valgrind and gcc)",
-    )
-    parser.add_argument(
-        "--pinned",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="also measure 1 participant and its floors with every process on one CPU",
-    )
+    for flag, also in (
+        ("--instructions", "count instructions per round under callgrind (needs valgrind, gcc)"),
+        ("--pinned", "measure 1 participant and its floors with every process on one CPU"),
+        ("--calls", "count Python function calls per round (exact, load-independent)"),
+    ):
+        parser.add_argument(
+            flag, action=argparse.BooleanOptionalAction, default=True, help="also " + also
+        )
     parser.add_argument(
         "--cpu", type=int, default=None, help="the CPU of --pinned (default: the last allowed)"
     )
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument(
-        "--calls",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="also count Python function calls per round (exact, load-independent)",
-    )
     parser.add_argument(
         "--against", type=Path, default=None, help="another evclock checkout, measured alike"
     )
