@@ -4,6 +4,7 @@ messages stamped with sim time, the sim-time broadcast and the pause/step/resume
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import json
 import re
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import pytest
+from _cli import run_evclock
 
 if TYPE_CHECKING:
     from websockets.sync.client import ClientConnection
@@ -80,17 +82,17 @@ class Client:
         return answer
 
 
-@pytest.fixture
-def live_run(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+@contextlib.contextmanager
+def _live_view(cwd: Path, *args: str) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    """``evclock *args`` with a live view on a free loopback port: the process and the
+    view's URL; the process is killed if it still runs on the way out."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "evclock", "run", "kuka", "--seed", "1", "--until", "10",
-         "--param", "tolerance=0.03", "--json", "report.json",
-         "--foxglove", "--foxglove-addr", "127.0.0.1:0", "--quiet"],
+        [sys.executable, "-m", "evclock", *args, "--foxglove", "--foxglove-addr", "127.0.0.1:0"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
-        cwd=tmp_path,
-    )  # fmt: skip
+        cwd=cwd,
+    )
     try:
         assert proc.stderr is not None
         line = proc.stderr.readline()  # the announcement comes before the run starts
@@ -101,6 +103,13 @@ def live_run(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
         if proc.poll() is None:
             proc.kill()
         proc.communicate(timeout=WAIT_S)
+
+
+@pytest.fixture
+def live_run(tmp_path: Path) -> Iterator[tuple[subprocess.Popen[str], str]]:
+    run = ["run", "kuka", "--seed", "1", "--until", "10", "--param", "tolerance=0.03"]
+    with _live_view(tmp_path, *run, "--json", "report.json", "--quiet") as live:
+        yield live
 
 
 @pytest.mark.pybullet
@@ -182,17 +191,6 @@ def _watch(proc: subprocess.Popen[str], client: Client) -> int:
     return client.times[-1]
 
 
-def _evclock(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "evclock", *args],
-        capture_output=True,
-        text=True,
-        cwd=cwd,
-        timeout=300,
-        check=False,
-    )
-
-
 @needs_live
 def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path) -> None:
     """A viewer subscribing to the scene mid-run is sent it again, live only: the recording
@@ -202,20 +200,8 @@ def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path
     from websockets.sync.client import connect
 
     run = ["run", "kuka", "--engine", "mujoco", "--seed", "3", "--until", "2", "--quiet"]
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "evclock", *run, "--record", "watched.mcap",
-         "--foxglove", "--foxglove-addr", "127.0.0.1:0"],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        cwd=tmp_path,
-    )  # fmt: skip
-    try:
-        assert proc.stderr is not None
-        line = proc.stderr.readline()
-        match = re.search(r"live view at (ws://127\.0\.0\.1:\d+)", line)
-        assert match is not None, line + proc.stderr.read()
-        with connect(match.group(1), subprotocols=[SUBPROTOCOL], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
+    with _live_view(tmp_path, *run, "--record", "watched.mcap") as (proc, url):
+        with connect(url, subprotocols=[SUBPROTOCOL], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
             client = Client(ws)
             client.until(lambda: "/evclock/scene" in client.channels())
             scene = client.channels()["/evclock/scene"]["id"]
@@ -245,11 +231,7 @@ def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path
             with pytest.raises(ConnectionClosedOK):
                 client.until(lambda: False)
         watched = proc.wait(timeout=WAIT_S)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-        proc.communicate(timeout=WAIT_S)
-    plain = _evclock(*run, "--record", "plain.mcap", cwd=tmp_path)
+    plain = run_evclock(*run, "--record", "plain.mcap", cwd=tmp_path)
     # 2 s is too short for the mission: both runs end at the limit (exit status 3).
     assert (watched, plain.returncode) == (3, 3), plain.stderr
     with (tmp_path / "watched.mcap").open("rb") as f:
@@ -257,5 +239,5 @@ def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path
             m.log_time for _, c, m in make_reader(f).iter_messages() if c.topic == "/evclock/scene"
         ]
     assert scenes == [0]
-    diff = _evclock("trace", "diff", "watched.mcap", "plain.mcap", cwd=tmp_path)
+    diff = run_evclock("trace", "diff", "watched.mcap", "plain.mcap", cwd=tmp_path)
     assert diff.returncode == 0, diff.stdout + diff.stderr

@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from _cli import run_evclock
 from typer.testing import CliRunner
 
 import evclock
@@ -16,7 +15,6 @@ from evclock.tools._scenarios import configure, load_scenario, parameters, parse
 
 ROOT = Path(__file__).resolve().parents[2]
 SHUTTLE = ROOT / "examples" / "shuttle_scenario.py"
-TIMEOUT = 120  # wall seconds: a guard against hangs, not a performance assertion
 runner = CliRunner()
 
 
@@ -168,35 +166,22 @@ def _third_party(tmp_path: Path, names: dict[str, str]) -> dict[str, str]:
     return env
 
 
-def _evclock(
-    args: list[str], env: dict[str, str] | None = None
-) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "evclock", *args],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT,
-        env=env,
-        check=False,
-    )
-
-
 @pytest.mark.pybullet
 def test_third_party_packages_register_scenarios_by_entry_point(tmp_path: Path) -> None:
     env = _third_party(tmp_path, {"acme": "acme_robots.shuttles:Shuttle"})
-    listed = _evclock(["list"], env)
+    listed = run_evclock("list", env=env)
     assert listed.returncode == 0, listed.stderr
     assert "acme" in listed.stdout
     assert "acme-robots" in listed.stdout
     assert "kuka" in listed.stdout
-    ran = _evclock(["run", "acme", "--seed", "4", "--quiet"], env)
+    ran = run_evclock("run", "acme", "--seed", "4", "--quiet", env=env)
     assert ran.returncode == 0, ran.stdout + ran.stderr
     assert "acme (seed 4): SUCCESS" in ran.stdout
 
 
 def test_a_name_registered_twice_must_be_named_precisely(tmp_path: Path) -> None:
     env = _third_party(tmp_path, {"kuka": "acme_robots.shuttles:Shuttle"})
-    ran = _evclock(["run", "kuka", "--quiet"], env)
+    ran = run_evclock("run", "kuka", "--quiet", env=env)
     assert ran.returncode == 2
     message = " ".join(ran.stderr.split())
     assert "scenario name 'kuka' is registered more than once" in message

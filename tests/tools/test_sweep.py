@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli import interrupt_when, run_evclock
 from rich.console import Console
 from typer.testing import CliRunner
 
@@ -145,10 +146,7 @@ BAD_SWEEPS = [
 def test_bad_sweep_input_exits_2_before_any_worker_starts(tmp_path: Path) -> None:
     """Through the real command: one error line on stderr, status 2, nothing run."""
     for args, message in BAD_SWEEPS:
-        proc = subprocess.run(
-            [sys.executable, "-m", "evclock", "sweep", SHUTTLE, "--quiet", *args],
-            capture_output=True, text=True, timeout=TIMEOUT, check=False, cwd=tmp_path,
-        )  # fmt: skip
+        proc = run_evclock("sweep", SHUTTLE, "--quiet", *args, cwd=tmp_path)
         assert proc.returncode == 2, (args, proc.stdout, proc.stderr)
         assert message in " ".join(proc.stderr.split()), (args, proc.stderr)
         assert len(proc.stderr.strip().splitlines()) == 1, proc.stderr
@@ -181,11 +179,9 @@ def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
     assert set(data["summary"]["quantiles"]) >= {"target_m", "final_error_m", "sim_time_s"}
     # Seed 2 through the real command, in another process: the same figures, bit for bit.
     single = tmp_path / "single.json"
-    proc = subprocess.run(
-        [sys.executable, "-m", "evclock", "run", SHUTTLE, "--seed", "2", "--param", "gain=4",
-         "--json", str(single), "--quiet"],
-        capture_output=True, text=True, timeout=TIMEOUT, check=False,
-    )  # fmt: skip
+    proc = run_evclock(
+        "run", SHUTTLE, "--seed", "2", "--param", "gain=4", "--json", str(single), "--quiet"
+    )
     assert proc.returncode == 0, proc.stderr
     expected = json.loads(single.read_text())
     assert rows[5]["report"]["final_state"] == expected["final_state"]
@@ -204,14 +200,10 @@ def test_local_sweep_rows_equal_single_runs_bit_for_bit(tmp_path: Path) -> None:
 def test_a_mujoco_sweep_runs_each_seed_as_evclock_run_engine_mujoco(tmp_path: Path) -> None:
     out = tmp_path / "sweep.json"
     command = [
-        sys.executable, "-m", "evclock", "sweep", "kuka", "--engine", "mujoco", "--seeds", "0:2",
-        "--until", "0.5", "--workers", "2", "--json", str(out), "--out", str(tmp_path / "out"),
-        "--quiet",
+        "sweep", "kuka", "--engine", "mujoco", "--seeds", "0:2", "--until", "0.5",
+        "--workers", "2", "--json", str(out), "--out", str(tmp_path / "out"), "--quiet",
     ]  # fmt: skip
-    proc = subprocess.run(
-        command, capture_output=True, text=True, timeout=TIMEOUT, check=False,
-        env={**os.environ, "COLUMNS": "200"},
-    )  # fmt: skip
+    proc = run_evclock(*command, env={**os.environ, "COLUMNS": "200"})
     assert proc.returncode == 1, proc.stdout + proc.stderr  # cut short by --until: no verdict
     text = " ".join(proc.stdout.split())
     assert "kuka on mujoco: 2/2 runs (2 cut short)" in text
@@ -225,7 +217,7 @@ def test_a_mujoco_sweep_runs_each_seed_as_evclock_run_engine_mujoco(tmp_path: Pa
         assert row["report"]["final_state"] == single.final_state  # bit for bit
         assert row["report"]["summary"] == single.to_json()["summary"]
     # The same command resumes from --out: every run is there already, on this engine.
-    again = subprocess.run(command, capture_output=True, text=True, timeout=TIMEOUT, check=False)
+    again = run_evclock(*command)
     assert "kuka on mujoco: 2/2 runs (2 cut short), 2 from the earlier sweep in --out" in " ".join(
         again.stdout.split()
     ), again.stdout + again.stderr
@@ -293,21 +285,9 @@ def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_pat
          "--param", f"marker_dir={markers}", "--workers", "1", "--json", str(out), "--quiet"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    try:
-        deadline = time.monotonic() + TIMEOUT / 2
-        marker = markers / "started-5"
-        while not marker.exists() and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        assert marker.exists(), proc.communicate(timeout=10)
-        worker = int(marker.read_text())
-        proc.send_signal(signal.SIGINT)
-        # The sweep stops its worker (terminate, then kill after 5 s) and exits.
-        stdout, stderr = proc.communicate(timeout=TIMEOUT / 4)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            _kill_workers(markers)
-            proc.communicate(timeout=10)
+    # The sweep stops its worker (terminate, then kill after 5 s) and exits.
+    stdout, stderr = interrupt_when(markers / "started-5", proc, lambda: _kill_workers(markers))
+    worker = int((markers / "started-5").read_text())
     assert proc.returncode == 130, stderr
     data = json.loads(out.read_text())
     assert data["summary"]["interrupted"] is True
@@ -320,16 +300,17 @@ def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_pat
     assert _gone(worker)
 
 
+def _ray_sweep(*args: str, out: Path) -> subprocess.CompletedProcess[str]:
+    """``evclock sweep <args>`` on a local Ray cluster of 2 workers, rows to ``out``."""
+    args = (*args, "--backend", "ray", "--workers", "2", "--json", str(out), "--quiet")
+    return run_evclock("sweep", *args, env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"})
+
+
 @pytest.mark.pybullet
 @needs_ray
 def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
     out = tmp_path / "ray.json"
-    proc = subprocess.run(
-        [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "0:3", "--backend", "ray",
-         "--workers", "2", "--json", str(out), "--quiet"],
-        capture_output=True, text=True, timeout=TIMEOUT, check=False,
-        env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"},
-    )  # fmt: skip
+    proc = _ray_sweep(fragile, "--seeds", "0:3", out=out)
     assert proc.returncode == 4, proc.stdout + proc.stderr
     rows = _rows_by_seed(out)
     assert [rows[s]["status"] for s in range(3)] == ["success", "error", "error"]
@@ -342,12 +323,7 @@ def test_ray_backend_runs_for_real(fragile: str, tmp_path: Path) -> None:
 @needs_ray
 def test_ray_backend_runs_mujoco_runs_for_real(tmp_path: Path) -> None:
     out = tmp_path / "ray.json"
-    proc = subprocess.run(
-        [sys.executable, "-m", "evclock", "sweep", "kuka", "--engine", "mujoco", "--seeds", "0:2",
-         "--until", "0.5", "--backend", "ray", "--workers", "2", "--json", str(out), "--quiet"],
-        capture_output=True, text=True, timeout=TIMEOUT, check=False,
-        env={**os.environ, "RAY_USAGE_STATS_ENABLED": "0"},
-    )  # fmt: skip
+    proc = _ray_sweep("kuka", "--engine", "mujoco", "--seeds", "0:2", "--until", "0.5", out=out)
     assert proc.returncode == 1, proc.stdout + proc.stderr  # cut short by --until: no verdict
     data = json.loads(out.read_text())
     assert data["engine"] == "mujoco"

@@ -10,14 +10,13 @@ import importlib.util
 import io
 import json
 import math
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from _cli import interrupt_when, run_evclock
 from rich.console import Console
 
 import evclock
@@ -65,17 +64,6 @@ class Stepped(CartPole):
             raise ValueError(f"controller failed at seed {self.seed}")
         await super()._mission(clock)
 """
-
-
-def evclock_cli(*args: str, cwd: Path) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "evclock", *args],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT,
-        check=False,
-        cwd=cwd,
-    )
 
 
 def test_describe_gives_the_student_t_interval_of_the_mean() -> None:
@@ -126,7 +114,7 @@ def test_sweep_summary_best_exports_and_plot(tmp_path: Path) -> None:
     from matplotlib.image import imread
 
     png = tmp_path / "gain.png"
-    proc = evclock_cli(
+    proc = run_evclock(
         "sweep", SHUTTLE, "--seeds", "3", "--param", "gain=3,4", "--workers", "2",
         "--best", "mission_time_s", "--csv", "runs.csv", "--jsonl", "runs.jsonl",
         "--json", "sweep.json", "--plot", str(png), "--plot-metric", "mission_time_s",
@@ -179,7 +167,7 @@ def test_sweep_summary_best_exports_and_plot(tmp_path: Path) -> None:
 
 @pytest.mark.pybullet
 def test_an_unknown_plot_metric_names_the_reported_ones(tmp_path: Path) -> None:
-    proc = evclock_cli(
+    proc = run_evclock(
         "sweep", SHUTTLE, "--seed", "4", "--plot", "x.png", "--plot-metric", "speed",
         "--quiet", cwd=tmp_path,
     )  # fmt: skip
@@ -187,13 +175,6 @@ def test_an_unknown_plot_metric_names_the_reported_ones(tmp_path: Path) -> None:
     assert "error: --plot-metric 'speed': no run reported it; the numeric fields: " in proc.stderr
     assert "mission_time_s" in proc.stderr
     assert "shuttle: 1/1 runs (1 success)" in proc.stdout  # --seed 4: that one seed
-
-
-def _wait_for(path: Path, proc: subprocess.Popen[str]) -> None:
-    deadline = time.monotonic() + TIMEOUT / 2
-    while not path.exists() and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.05)
-    assert path.exists(), proc.communicate(timeout=10)
 
 
 @pytest.mark.pybullet
@@ -208,14 +189,7 @@ def test_an_interrupted_sweep_resumes_in_the_same_directory(tmp_path: Path) -> N
         "--param", f"marker_dir={markers}", "--out", str(out), "--quiet",
     ]  # fmt: skip
     proc = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_for(markers / "held-5", proc)  # seeds 3 and 4 are done, 5 is held
-        proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=TIMEOUT / 4)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=10)
+    stdout, stderr = interrupt_when(markers / "held-5", proc)  # seeds 3 and 4 done, 5 held
     assert proc.returncode == 130, stderr
     assert "stepped: 2/5 runs (2 success) interrupted" in " ".join(stdout.split())
     done = [json.loads(line) for line in (out / "runs.jsonl").read_text().splitlines()]
@@ -251,7 +225,7 @@ def test_a_directory_of_another_sweep_is_refused(tmp_path: Path) -> None:
     (out / "runs.jsonl").write_text('{"scenario": "kuka", "seed": 0, "params": {}, '
                                     '"until": null, "status": "success", "report": null, '
                                     '"error": null}\n')  # fmt: skip
-    proc = evclock_cli("sweep", SHUTTLE, "--seeds", "2", "--out", str(out), cwd=tmp_path)
+    proc = run_evclock("sweep", SHUTTLE, "--seeds", "2", "--out", str(out), cwd=tmp_path)
     assert proc.returncode == 2
     assert proc.stderr.strip() == (
         f"error: --out {str(out)!r} holds a sweep of 'kuka', not {SHUTTLE!r}; give another "
@@ -274,7 +248,7 @@ def test_sweep_progress_resumes_its_count_and_shows_an_eta() -> None:
 
 @pytest.mark.pybullet
 def test_a_sweep_with_a_failed_criterion_is_1(tmp_path: Path) -> None:
-    proc = evclock_cli(
+    proc = run_evclock(
         "sweep", "cartpole", "--seeds", "2", "--param", "fail_angle=0.01,0.5",
         "--until", "0.5", "--quiet", cwd=tmp_path,
     )  # fmt: skip
