@@ -10,12 +10,10 @@ wall-time thresholds.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import itertools
 import re
 import selectors
 import sys
-import threading
 from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any, TypeVar
@@ -23,7 +21,7 @@ from typing import Any, TypeVar
 import pytest
 import uvloop
 from _examples import run_example
-from _paused_waits import PausedWaits
+from _paused_waits import Operator, PausedWaits
 
 import evclock
 from evclock import (
@@ -662,7 +660,7 @@ def test_paced_steps_are_paced_from_the_step_call() -> None:
 
 
 def _operated_driver(
-    script: Callable[[Callable[..., None], Callable[[], None]], None],
+    script: Callable[[Operator], None],
     *,
     via: str = "directly",
     start_paused: bool = True,
@@ -670,64 +668,24 @@ def _operated_driver(
 ) -> tuple[list[object], list[float]]:
     """A task ticks every sim second (8 ticks, ``clock.sleep(1)``) under a paused SimDriver
     on virtual time; once the driver first waits paused (recorded), an operator thread runs
-    ``script(control, paused_wait)``, which must end with ``resume``: ``control(name, *args)``
-    calls a control of the driver from that thread (directly, or handed over with
-    ``call_soon_threadsafe``), ``paused_wait()`` waits for the driver's next paused wait and
-    records ``(sim time, tick times so far)``. Returns the records and every tick's time."""
+    ``script``, which must end with ``resume``. Returns the operator's records and every
+    tick's time."""
     selector = PausedWaits()
-    seen: list[object] = []
-    ticks: list[float] = []
-    errors: list[BaseException] = []
+    operator = Operator(selector, via)
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
         async with SimDriver(rtf=None, paused=start_paused) as sim:
             if not start_paused:
                 sim.pause()
             prepare(sim)
-            selector.snapshot = lambda: (sim.now_ns / 1e9, list(ticks))
-            pending = [selector.expect()]
-
-            def paused_wait() -> None:
-                seen.append(pending.pop().result(10))
-                pending.append(selector.expect())
-
-            def control(name: str, *args: object) -> None:
-                action = getattr(sim, name)
-                if via == "directly":
-                    action(*args)
-                else:
-                    loop.call_soon_threadsafe(action, *args)
-
-            def operate() -> None:
-                try:
-                    paused_wait()
-                    script(control, paused_wait)
-                except BaseException as exc:  # reported below, once the loop stopped
-                    errors.append(exc)
-                    with contextlib.suppress(RuntimeError):  # the loop may be closed already
-                        loop.call_soon_threadsafe(loop.stop)
-
-            async def ticker() -> None:
-                while len(ticks) < 8:
-                    await sim.clock.sleep(1)
-                    ticks.append(sim.now_ns / 1e9)
-
-            task = asyncio.create_task(ticker())
-            thread = threading.Thread(target=operate, daemon=True)
-            thread.start()
-            try:
-                await task
-            finally:
-                thread.join(10)
+            await operator.run(sim, script, sim.clock.sleep, lambda: sim.now_ns / 1e9)
 
     try:
         with asyncio.Runner(loop_factory=lambda: asyncio.SelectorEventLoop(selector)) as r:
             r.run(main())
     finally:
-        if errors:
-            raise errors[0]
-    return seen, ticks
+        operator.raise_error()
+    return operator.seen, operator.ticks
 
 
 @pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
@@ -738,15 +696,15 @@ def test_each_step_from_an_operator_thread_jumps_to_the_next_deadline(
     """On virtual time a step is one jump to the next deadline (one wake-up batch), after
     which the driver holds again; step(n) is n jumps; step_until(t) stops exactly at t."""
 
-    def script(control: Callable[..., None], paused_wait: Callable[[], None]) -> None:
+    def script(op: Operator) -> None:
         for _ in range(3):
-            control("step", 1)
-            paused_wait()
-        control("step", 2)
-        paused_wait()
-        control("step_until", Time(seconds=6.5))
-        paused_wait()
-        control("resume")
+            op.control("step", 1)
+            op.paused_wait()
+        op.control("step", 2)
+        op.paused_wait()
+        op.control("step_until", Time(seconds=6.5))
+        op.paused_wait()
+        op.control("resume")
 
     seen, ticks = _operated_driver(script, via=via, start_paused=start_paused)
     assert seen == [
@@ -775,11 +733,11 @@ def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str)
         else:
             sim.step_until(Time(seconds=0.5))  # replaced by a nearer target
 
-    def script(control: Callable[..., None], paused_wait: Callable[[], None]) -> None:
+    def script(op: Operator) -> None:
         for _ in range(3):
-            control("step", 1)
-            paused_wait()
-        control("resume")
+            op.control("step", 1)
+            op.paused_wait()
+        op.control("resume")
 
     seen, ticks = _operated_driver(script, prepare=prepare)
     first = 0.5 if how == "step_until" else 0.0

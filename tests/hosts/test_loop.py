@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import math
 import signal
 import socket
@@ -13,7 +12,7 @@ from collections.abc import Callable
 from typing import Any
 
 import pytest
-from _paused_waits import PausedWaits
+from _paused_waits import Operator, PausedWaits
 
 import evclock
 from evclock import Duration, InvalidArgumentError, SimEventLoop, Time
@@ -384,32 +383,8 @@ def test_futures_of_the_loop_are_bound_to_it_inside_and_outside_its_run() -> Non
 # ------------------------------------------- stepping a paused loop from an operator thread
 
 
-class _Operator:
-    """An operator thread's view of a paused loop: :meth:`control` calls a control
-    (directly, or handed over with ``call_soon_threadsafe``), then waits for the loop's next
-    paused wait and records ``(sim time, tick times so far)`` in :attr:`seen`."""
-
-    def __init__(self, loop: SimEventLoop, selector: PausedWaits, via: str) -> None:
-        self.loop = loop
-        self.via = via
-        self.seen: list[object] = []
-        self._selector = selector
-        self._next = selector.expect()  # the loop's first paused wait
-
-    def paused_wait(self) -> None:
-        self.seen.append(self._next.result(10))
-        self._next = self._selector.expect()
-
-    def control(self, name: str, *args: object) -> None:
-        action = getattr(self.loop, name)
-        if self.via == "directly":
-            action(*args)
-        else:
-            self.loop.call_soon_threadsafe(action, *args)
-
-
 def _operated_run(
-    script: Callable[[_Operator], None],
+    script: Callable[[Operator], None],
     *,
     via: str = "directly",
     sleeper: str = "asyncio.sleep",
@@ -421,46 +396,21 @@ def _operated_run(
     must end with ``resume()``. Returns the operator's records and every tick's time."""
     selector = PausedWaits()
     loop = SimEventLoop(selector=selector, paused=start_paused, stall_timeout=10)
-    ticks: list[float] = []
-    selector.snapshot = lambda: (loop.time(), list(ticks))
-    operator = _Operator(loop, selector, via)
-    errors: list[BaseException] = []
-
-    def operate() -> None:
-        try:
-            operator.paused_wait()
-            script(operator)
-        except BaseException as exc:  # reported below, once the loop stopped
-            errors.append(exc)
-            with contextlib.suppress(RuntimeError):  # the loop may be closed already
-                loop.call_soon_threadsafe(loop.stop)
+    operator = Operator(selector, via)
 
     async def main() -> None:
         if not start_paused:
             loop.pause()
         prepare(loop)
         sleep = asyncio.sleep if sleeper == "asyncio.sleep" else evclock.clock().sleep
-
-        async def ticker() -> None:
-            while len(ticks) < 8:
-                await sleep(1)
-                ticks.append(loop.time())
-
-        task = asyncio.ensure_future(ticker())
-        thread = threading.Thread(target=operate, daemon=True)
-        thread.start()
-        try:
-            await task
-        finally:
-            thread.join(10)
+        await operator.run(loop, script, sleep, loop.time)
 
     try:
         with asyncio.Runner(loop_factory=lambda: loop) as runner:
             runner.run(main())
     finally:
-        if errors:
-            raise errors[0]
-    return operator.seen, ticks
+        operator.raise_error()
+    return operator.seen, operator.ticks
 
 
 @pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
@@ -472,7 +422,7 @@ def test_each_step_from_an_operator_thread_jumps_to_the_next_deadline(
     """On virtual time a step is one jump to the next deadline (one wake-up batch), after
     which the loop holds again; step(n) is n jumps; step_until(t) stops exactly at t."""
 
-    def script(op: _Operator) -> None:
+    def script(op: Operator) -> None:
         for _ in range(3):
             op.control("step", 1)
             op.paused_wait()
@@ -514,7 +464,7 @@ def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str)
     """pause(), resume() or a new step_until() end a step_until() before its target: its
     stop mark goes with it, so a later step still jumps to the next wake-up, not there."""
 
-    def script(op: _Operator) -> None:
+    def script(op: Operator) -> None:
         for _ in range(3):
             op.control("step", 1)
             op.paused_wait()

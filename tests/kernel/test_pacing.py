@@ -102,8 +102,11 @@ class Harness:
         return future
 
 
-def control_channel(loop: asyncio.AbstractEventLoop) -> Callable[[], None]:
-    """Register a socket, as a real control channel would: a paused loop may then wait."""
+def control_channel() -> tuple[SimEventLoop, Callable[[], None]]:
+    """Register a socket on the running sim loop, as a real control channel would: a paused
+    loop may then wait. The loop, and how to close the channel."""
+    loop = asyncio.get_running_loop()
+    assert isinstance(loop, SimEventLoop)
     ours, theirs = socket.socketpair()
     loop.add_reader(ours, lambda: None)
 
@@ -112,7 +115,7 @@ def control_channel(loop: asyncio.AbstractEventLoop) -> Callable[[], None]:
         ours.close()
         theirs.close()
 
-    return close
+    return loop, close
 
 
 # ----------------------------------------------------------------------------- rtf
@@ -261,9 +264,7 @@ def test_pause_step_and_resume(client: int) -> None:
     h = Harness(client)
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        assert isinstance(loop, SimEventLoop)
-        close = control_channel(loop)
+        loop, close = control_channel()
         clock = evclock.clock()
         # a far deadline: each advance aims at it, the pacer must stop it step by step
         background = asyncio.ensure_future(clock.sleep(100.0))
@@ -303,9 +304,7 @@ def test_step_counts_physics_steps_with_pacing(client: int) -> None:
     h = Harness(client, rtf=1.0)
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        assert isinstance(loop, SimEventLoop)
-        close = control_channel(loop)
+        loop, close = control_channel()
         loop.pause()
         assert await h.blocked() == 0
         loop.step(24)
@@ -322,9 +321,7 @@ def test_resume_does_not_burst_to_catch_up_the_pause(client: int) -> None:
     h = Harness(client, rtf=1.0)
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        assert isinstance(loop, SimEventLoop)
-        close = control_channel(loop)
+        loop, close = control_channel()
         clock = evclock.clock()
         await clock.sleep(0.5)
         loop.pause()
@@ -346,10 +343,8 @@ def test_starting_paused_and_stepping_from_a_task(client: int) -> None:
     h = Harness(client, paused=True)
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        assert isinstance(loop, SimEventLoop)
+        loop, close = control_channel()
         assert loop.paused
-        close = control_channel(loop)
         loop.step(3)
         # a task can wait for its steps with wait_until (stepping stops when it resolves)
         await h.source.wait_until(lambda: h.source.step_index >= 3)
