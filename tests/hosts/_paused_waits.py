@@ -8,8 +8,10 @@ import concurrent.futures
 import contextlib
 import selectors
 import threading
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Coroutine
 from typing import Any
+
+from evclock import Time
 
 
 class PausedWaits(selectors.DefaultSelector):
@@ -78,7 +80,7 @@ class Operator:
         """On the running loop: 8 ticks (``await sleep(1)``, each recording ``now()``) while
         this operator's thread waits for the first paused wait, then runs ``script(self)``,
         which must end with ``resume``; the controls are ``target``'s. A script that fails
-        stops the loop: call :meth:`raise_error` once the runner is done."""
+        stops the loop (see :meth:`outcome`)."""
         loop = self._loop = asyncio.get_running_loop()
         self._target = target
         self._selector.snapshot = lambda: (now(), list(self.ticks))
@@ -87,7 +89,7 @@ class Operator:
             try:
                 self.paused_wait()
                 script(self)
-            except BaseException as exc:  # reported by raise_error, once the loop stopped
+            except BaseException as exc:  # raised by outcome(), once the loop stopped
                 self._errors.append(exc)
                 with contextlib.suppress(RuntimeError):  # the loop may be closed already
                     loop.call_soon_threadsafe(loop.stop)
@@ -105,7 +107,66 @@ class Operator:
         finally:
             thread.join(10)
 
-    def raise_error(self) -> None:
-        """Raise what the script raised, if it failed."""
-        if self._errors:
-            raise self._errors[0]
+    def outcome(
+        self,
+        loop_factory: Callable[[], asyncio.AbstractEventLoop],
+        main: Callable[[], Coroutine[Any, Any, None]],
+    ) -> tuple[list[object], list[float]]:
+        """Run ``main()`` (which awaits :meth:`run`) on a loop of ``loop_factory``; what the
+        script failed with is raised once the loop stopped. The records and the ticks."""
+        try:
+            with asyncio.Runner(loop_factory=loop_factory) as runner:
+                runner.run(main())
+        finally:
+            if self._errors:
+                raise self._errors[0]
+        return self.seen, self.ticks
+
+
+#: Every tick's time in a run an operator script steps and then resumes.
+TICKS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+
+
+def step_1_1_1_2_until_6_5(op: Operator) -> None:
+    """Step 1 three times, step 2, step_until 6.5 s (waiting for the pause after each), then
+    resume: what :data:`STEPPED_SEEN` records."""
+    for _ in range(3):
+        op.control("step", 1)
+        op.paused_wait()
+    op.control("step", 2)
+    op.paused_wait()
+    op.control("step_until", Time(seconds=6.5))
+    op.paused_wait()
+    op.control("resume")
+
+
+#: On virtual time each step is one jump to the next deadline, then time holds.
+STEPPED_SEEN = [
+    (0.0, []),
+    (1.0, [1.0]),
+    (2.0, [1.0, 2.0]),
+    (3.0, [1.0, 2.0, 3.0]),  # and no further until the next control
+    (5.0, [1.0, 2.0, 3.0, 4.0, 5.0]),
+    (6.5, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
+]
+
+
+def step_1_three_times(op: Operator) -> None:
+    """Step 1 three times (waiting for the pause after each), then resume."""
+    for _ in range(3):
+        op.control("step", 1)
+        op.paused_wait()
+    op.control("resume")
+
+
+def end_a_step_until(target: Any, how: str) -> None:
+    """On ``target``'s thread: place a step_until(2.5 s), never reached, and end it with
+    ``how``: ``"pause"``, ``"resume"`` (then pause again) or a nearer ``"step_until"`` (0.5 s)."""
+    target.step_until(Time(seconds=2.5))
+    if how == "pause":
+        target.pause()
+    elif how == "resume":
+        target.resume()
+        target.pause()
+    else:
+        target.step_until(Time(seconds=0.5))

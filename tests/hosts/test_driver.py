@@ -18,10 +18,10 @@ from collections.abc import Awaitable, Callable, Coroutine
 from pathlib import Path
 from typing import Any, TypeVar
 
+import _paused_waits as operated
 import pytest
 import uvloop
 from _examples import run_example
-from _paused_waits import Operator, PausedWaits
 
 import evclock
 from evclock import (
@@ -660,7 +660,7 @@ def test_paced_steps_are_paced_from_the_step_call() -> None:
 
 
 def _operated_driver(
-    script: Callable[[Operator], None],
+    script: Callable[[operated.Operator], None],
     *,
     via: str = "directly",
     start_paused: bool = True,
@@ -670,8 +670,8 @@ def _operated_driver(
     on virtual time; once the driver first waits paused (recorded), an operator thread runs
     ``script``, which must end with ``resume``. Returns the operator's records and every
     tick's time."""
-    selector = PausedWaits()
-    operator = Operator(selector, via)
+    selector = operated.PausedWaits()
+    operator = operated.Operator(selector, via)
 
     async def main() -> None:
         async with SimDriver(rtf=None, paused=start_paused) as sim:
@@ -680,12 +680,7 @@ def _operated_driver(
             prepare(sim)
             await operator.run(sim, script, sim.clock.sleep, lambda: sim.now_ns / 1e9)
 
-    try:
-        with asyncio.Runner(loop_factory=lambda: asyncio.SelectorEventLoop(selector)) as r:
-            r.run(main())
-    finally:
-        operator.raise_error()
-    return operator.seen, operator.ticks
+    return operator.outcome(lambda: asyncio.SelectorEventLoop(selector), main)
 
 
 @pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
@@ -696,26 +691,11 @@ def test_each_step_from_an_operator_thread_jumps_to_the_next_deadline(
     """On virtual time a step is one jump to the next deadline (one wake-up batch), after
     which the driver holds again; step(n) is n jumps; step_until(t) stops exactly at t."""
 
-    def script(op: Operator) -> None:
-        for _ in range(3):
-            op.control("step", 1)
-            op.paused_wait()
-        op.control("step", 2)
-        op.paused_wait()
-        op.control("step_until", Time(seconds=6.5))
-        op.paused_wait()
-        op.control("resume")
-
-    seen, ticks = _operated_driver(script, via=via, start_paused=start_paused)
-    assert seen == [
-        (0.0, []),
-        (1.0, [1.0]),
-        (2.0, [1.0, 2.0]),
-        (3.0, [1.0, 2.0, 3.0]),  # and no further until the next control
-        (5.0, [1.0, 2.0, 3.0, 4.0, 5.0]),
-        (6.5, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
-    ]
-    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    seen, ticks = _operated_driver(
+        operated.step_1_1_1_2_until_6_5, via=via, start_paused=start_paused
+    )
+    assert seen == operated.STEPPED_SEEN
+    assert ticks == operated.TICKS
 
 
 @pytest.mark.parametrize("how", ["pause", "resume", "step_until"])
@@ -723,31 +703,12 @@ def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str)
     """pause(), resume() or a new step_until() end a step_until() before its target: its
     stop mark goes with it, so a later step still jumps to the next wake-up, not there."""
 
-    def prepare(sim: SimDriver) -> None:
-        sim.step_until(Time(seconds=2.5))  # placed now (on the loop's thread), never reached:
-        if how == "pause":
-            sim.pause()
-        elif how == "resume":
-            sim.resume()
-            sim.pause()
-        else:
-            sim.step_until(Time(seconds=0.5))  # replaced by a nearer target
-
-    def script(op: Operator) -> None:
-        for _ in range(3):
-            op.control("step", 1)
-            op.paused_wait()
-        op.control("resume")
-
-    seen, ticks = _operated_driver(script, prepare=prepare)
+    seen, ticks = _operated_driver(
+        operated.step_1_three_times, prepare=lambda sim: operated.end_a_step_until(sim, how)
+    )
     first = 0.5 if how == "step_until" else 0.0
-    assert seen == [
-        (first, []),
-        (1.0, [1.0]),
-        (2.0, [1.0, 2.0]),
-        (3.0, [1.0, 2.0, 3.0]),
-    ]
-    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    assert seen == [(first, []), *operated.STEPPED_SEEN[1:4]]
+    assert ticks == operated.TICKS
 
 
 # ------------------------------------------------------------------ jumps

@@ -11,8 +11,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import _paused_waits as operated
 import pytest
-from _paused_waits import Operator, PausedWaits
 
 import evclock
 from evclock import Duration, InvalidArgumentError, SimEventLoop, Time
@@ -384,7 +384,7 @@ def test_futures_of_the_loop_are_bound_to_it_inside_and_outside_its_run() -> Non
 
 
 def _operated_run(
-    script: Callable[[Operator], None],
+    script: Callable[[operated.Operator], None],
     *,
     via: str = "directly",
     sleeper: str = "asyncio.sleep",
@@ -394,9 +394,9 @@ def _operated_run(
     """A task ticks every sim second (8 ticks) on a paused SimEventLoop on virtual time;
     once the loop first waits paused (recorded), an operator thread runs ``script``, which
     must end with ``resume()``. Returns the operator's records and every tick's time."""
-    selector = PausedWaits()
+    selector = operated.PausedWaits()
     loop = SimEventLoop(selector=selector, paused=start_paused, stall_timeout=10)
-    operator = Operator(selector, via)
+    operator = operated.Operator(selector, via)
 
     async def main() -> None:
         if not start_paused:
@@ -405,12 +405,7 @@ def _operated_run(
         sleep = asyncio.sleep if sleeper == "asyncio.sleep" else evclock.clock().sleep
         await operator.run(loop, script, sleep, loop.time)
 
-    try:
-        with asyncio.Runner(loop_factory=lambda: loop) as runner:
-            runner.run(main())
-    finally:
-        operator.raise_error()
-    return operator.seen, operator.ticks
+    return operator.outcome(lambda: loop, main)
 
 
 @pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
@@ -422,39 +417,17 @@ def test_each_step_from_an_operator_thread_jumps_to_the_next_deadline(
     """On virtual time a step is one jump to the next deadline (one wake-up batch), after
     which the loop holds again; step(n) is n jumps; step_until(t) stops exactly at t."""
 
-    def script(op: Operator) -> None:
-        for _ in range(3):
-            op.control("step", 1)
-            op.paused_wait()
-        op.control("step", 2)
-        op.paused_wait()
-        op.control("step_until", Time(6.5))
-        op.paused_wait()
-        op.control("resume")
-
-    seen, ticks = _operated_run(script, via=via, sleeper=sleeper, start_paused=start_paused)
-    assert seen == [
-        (0.0, []),
-        (1.0, [1.0]),
-        (2.0, [1.0, 2.0]),
-        (3.0, [1.0, 2.0, 3.0]),  # and no further until the next control
-        (5.0, [1.0, 2.0, 3.0, 4.0, 5.0]),
-        (6.5, [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]),
-    ]
-    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    seen, ticks = _operated_run(
+        operated.step_1_1_1_2_until_6_5, via=via, sleeper=sleeper, start_paused=start_paused
+    )
+    assert seen == operated.STEPPED_SEEN
+    assert ticks == operated.TICKS
 
 
 def _end_a_step_until(how: str) -> Callable[[SimEventLoop], None]:
     def prepare(loop: SimEventLoop) -> None:
         loop.pause()
-        loop.step_until(Time(2.5))  # placed now (on the loop's thread), never reached:
-        if how == "pause":
-            loop.pause()
-        elif how == "resume":
-            loop.resume()
-            loop.pause()
-        else:
-            loop.step_until(Time(0.5))  # replaced by a nearer target
+        operated.end_a_step_until(loop, how)
 
     return prepare
 
@@ -464,21 +437,10 @@ def test_a_step_until_ended_early_leaves_nothing_for_a_step_to_stop_at(how: str)
     """pause(), resume() or a new step_until() end a step_until() before its target: its
     stop mark goes with it, so a later step still jumps to the next wake-up, not there."""
 
-    def script(op: Operator) -> None:
-        for _ in range(3):
-            op.control("step", 1)
-            op.paused_wait()
-        op.control("resume")
-
-    seen, ticks = _operated_run(script, prepare=_end_a_step_until(how))
+    seen, ticks = _operated_run(operated.step_1_three_times, prepare=_end_a_step_until(how))
     first = 0.5 if how == "step_until" else 0.0
-    assert seen == [
-        (first, []),
-        (1.0, [1.0]),
-        (2.0, [1.0, 2.0]),
-        (3.0, [1.0, 2.0, 3.0]),
-    ]
-    assert ticks == [1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0]
+    assert seen == [(first, []), *operated.STEPPED_SEEN[1:4]]
+    assert ticks == operated.TICKS
 
 
 @pytest.mark.parametrize("via", ["directly", "call_soon_threadsafe"])
