@@ -209,20 +209,26 @@ def test_step_while_running_is_a_400_with_evclocks_message(client: httpx.Client)
 
 
 @pytest.mark.parametrize(
-    ("count", "kind", "fragment"),
+    ("control", "value", "kind", "fragment"),
     [
-        (0, evclock.InvalidArgumentError, "0"),
-        (-3, evclock.InvalidArgumentError, "-3"),
-        ("2", evclock.InvalidTypeError, "str"),
-        (1.5, evclock.InvalidTypeError, "float"),
-        (True, evclock.InvalidTypeError, "bool"),
+        ("step", 0, evclock.InvalidArgumentError, "0"),
+        ("step", -3, evclock.InvalidArgumentError, "-3"),
+        ("step", "2", evclock.InvalidTypeError, "str"),
+        ("step", 1.5, evclock.InvalidTypeError, "float"),
+        ("step", True, evclock.InvalidTypeError, "bool"),
+        ("rtf", 0, evclock.InvalidArgumentError, "positive"),
+        ("rtf", -1.5, evclock.InvalidArgumentError, "-1.5"),
+        ("rtf", "fast", evclock.InvalidTypeError, "str"),
+        ("rtf", True, evclock.InvalidTypeError, "bool"),
     ],
 )
-def test_bad_step_counts_are_400s(
-    client: httpx.Client, count: object, kind: type[Exception], fragment: str
+def test_bad_step_counts_and_rtf_values_are_400s_and_change_nothing(
+    client: httpx.Client, control: str, value: object, kind: type[Exception], fragment: str
 ) -> None:
-    assert_error(post(client, "/api/step", {"count": count}), kind, "count", fragment)
-    assert state(client)["physics_steps"] == 0
+    field = "count" if control == "step" else "rtf"
+    assert_error(post(client, f"/api/{control}", {field: value}), kind, field, fragment)
+    after = state(client)
+    assert (after["physics_steps"], after["rtf"]) == (0, 1.0)
 
 
 # ------------------------------------------------------------------ pause/resume
@@ -272,22 +278,6 @@ def test_rtf_can_be_changed_and_set_to_as_fast_as_possible(client: httpx.Client)
     assert post_ok(client, "/api/rtf", {"rtf": 3})["rtf"] == 3.0
     assert post_ok(client, "/api/rtf", {"rtf": None})["rtf"] is None
     assert state(client)["rtf"] is None
-
-
-@pytest.mark.parametrize(
-    ("rtf", "kind", "fragment"),
-    [
-        (0, evclock.InvalidArgumentError, "positive"),
-        (-1.5, evclock.InvalidArgumentError, "-1.5"),
-        ("fast", evclock.InvalidTypeError, "str"),
-        (True, evclock.InvalidTypeError, "bool"),
-    ],
-)
-def test_bad_rtf_values_are_400s_and_keep_the_rtf(
-    client: httpx.Client, rtf: object, kind: type[Exception], fragment: str
-) -> None:
-    assert_error(post(client, "/api/rtf", {"rtf": rtf}), kind, "rtf", fragment)
-    assert state(client)["rtf"] == 1.0
 
 
 def test_achieved_rtf_is_reported_while_running(make_client: Callable[..., httpx.Client]) -> None:
@@ -454,15 +444,23 @@ def test_background_server_serves_on_a_free_port() -> None:
 # ------------------------------------------------- episodes: statistics survive
 
 
-def test_loop_statistics_and_lateness_survive_episode_resets(
+def _in_the_third_episode(
     make_client: Callable[..., httpx.Client],
-) -> None:
+) -> tuple[httpx.Client, dict[str, Any]]:
+    """A client of a run at rtf=None, and its state once the third episode's loops tick."""
     client = make_client(paused=False, rtf=None)
     current = wait_for(
         lambda s: s["episode"]["number"] >= 3 and s["loops"] and s["loops"][0]["ticks"] > 1,
         client,
         "the third episode, with its loops ticking",
     )
+    return client, current
+
+
+def test_loop_statistics_and_lateness_survive_episode_resets(
+    make_client: Callable[..., httpx.Client],
+) -> None:
+    client, current = _in_the_third_episode(make_client)
     episode = current["episode"]
     loops = {loop["name"]: loop for loop in current["loops"]}
     assert set(loops) == {"joint_control", "planner"}
@@ -495,12 +493,7 @@ def test_loop_statistics_and_lateness_survive_episode_resets(
 def test_each_loop_keeps_its_figures_over_the_whole_run(
     make_client: Callable[..., httpx.Client],
 ) -> None:
-    client = make_client(paused=False, rtf=None)
-    current = wait_for(
-        lambda s: s["episode"]["number"] >= 3 and s["loops"] and s["loops"][0]["ticks"] > 1,
-        client,
-        "the third episode, with its loops ticking",
-    )
+    _, current = _in_the_third_episode(make_client)
     number = current["episode"]["number"]
     ended = [e for e in current["finished_episodes"] if e["number"] < number]
     assert len(ended) == number - 1
