@@ -6,6 +6,7 @@ import importlib.util
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -27,20 +28,32 @@ needs_plot = pytest.mark.skipif(
 )
 
 
+Recorded = tuple[Path, evclock.tools.RunReport]
+
+
+def _record(path: Path, **options: Any) -> evclock.tools.RunReport:
+    """Run the shuttle scenario with seed 1 and ``options``, recorded to ``path``."""
+    return evclock.tools.run_scenario(SHUTTLE, seed=1, record=path, **options)
+
+
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, evclock.tools.RunReport]:
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> Recorded:
     path = tmp_path_factory.mktemp("rec") / "shuttle.mcap"
-    report = evclock.tools.run_scenario(SHUTTLE, seed=1, record=path)
-    return path, report
+    return path, _record(path)
+
+
+@pytest.fixture
+def recording(recorded: Recorded) -> Path:
+    """The file of :func:`recorded`."""
+    return recorded[0]
 
 
 @pytest.mark.pybullet
 @needs_record
-def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object]) -> None:
+def test_channels_use_json_schema_and_json_messages(recording: Path) -> None:
     from mcap.reader import make_reader
 
-    path, _ = recorded
-    with path.open("rb") as stream:
+    with recording.open("rb") as stream:
         reader = make_reader(stream)
         assert reader.get_header().profile == "evclock"
         summary = reader.get_summary()
@@ -74,7 +87,7 @@ def test_channels_use_json_schema_and_json_messages(recorded: tuple[Path, object
 @pytest.mark.pybullet
 @needs_record
 def test_every_tick_is_recorded_at_its_sim_time(
-    recorded: tuple[Path, evclock.tools.RunReport],
+    recorded: Recorded,
 ) -> None:
     path, report = recorded
     trace = evclock.tools.read_trace(path)
@@ -103,7 +116,7 @@ def test_every_tick_is_recorded_at_its_sim_time(
 
 @pytest.mark.pybullet
 @needs_record
-def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.tools.RunReport]) -> None:
+def test_recording_does_not_change_the_run(recorded: Recorded) -> None:
     path, report = recorded
     plain = evclock.tools.run_scenario(SHUTTLE, seed=1)
     assert plain.final_state == report.final_state
@@ -117,13 +130,10 @@ def test_recording_does_not_change_the_run(recorded: tuple[Path, evclock.tools.R
 
 @pytest.mark.pybullet
 @needs_record
-def test_trace_diff_identical_runs_whatever_the_rtf(
-    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
-) -> None:
-    path, _ = recorded
+def test_trace_diff_identical_runs_whatever_the_rtf(recording: Path, tmp_path: Path) -> None:
     paced = tmp_path / "paced.mcap"
-    evclock.tools.run_scenario(SHUTTLE, seed=1, rtf=20.0, record=paced)
-    result = runner.invoke(app, ["trace", "diff", str(path), str(paced)])
+    _record(paced, rtf=20.0)
+    result = runner.invoke(app, ["trace", "diff", str(recording), str(paced)])
     assert result.exit_code == 0, result.output
     assert "identical: " in result.output
     assert "deterministic messages agree bit for bit" in result.output
@@ -131,13 +141,10 @@ def test_trace_diff_identical_runs_whatever_the_rtf(
 
 @pytest.mark.pybullet
 @needs_record
-def test_trace_diff_names_the_first_divergence(
-    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
-) -> None:
-    path, _ = recorded
+def test_trace_diff_names_the_first_divergence(recording: Path, tmp_path: Path) -> None:
     other = tmp_path / "slower.mcap"
-    evclock.tools.run_scenario(SHUTTLE, seed=1, params={"max_speed": 1.0}, record=other)
-    a, b = evclock.tools.read_trace(path), evclock.tools.read_trace(other)
+    _record(other, params={"max_speed": 1.0})
+    a, b = evclock.tools.read_trace(recording), evclock.tools.read_trace(other)
     divergence = evclock.tools.first_divergence(a, b)
     assert divergence is not None
     # Same seed, same world, a lower speed limit from the first control tick: the first
@@ -146,7 +153,7 @@ def test_trace_diff_names_the_first_divergence(
     assert divergence.topic == "/evclock/state"
     assert divergence.detail.startswith("physics.joints.slider_to_cart.position: ")
     assert " != " in divergence.detail
-    result = runner.invoke(app, ["trace", "diff", str(path), str(other)])
+    result = runner.invoke(app, ["trace", "diff", str(recording), str(other)])
     assert result.exit_code == 1
     assert " ".join(result.output.split()) == divergence.describe()
     assert evclock.tools.first_divergence(a, a) is None
@@ -154,13 +161,10 @@ def test_trace_diff_names_the_first_divergence(
 
 @pytest.mark.pybullet
 @needs_record
-def test_trace_diff_reports_a_shorter_run(
-    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
-) -> None:
-    path, _ = recorded
+def test_trace_diff_reports_a_shorter_run(recording: Path, tmp_path: Path) -> None:
     short = tmp_path / "short.mcap"
-    evclock.tools.run_scenario(SHUTTLE, seed=1, until=0.5, record=short)
-    full = evclock.tools.read_trace(path)
+    _record(short, until=0.5)
+    full = evclock.tools.read_trace(recording)
     divergence = evclock.tools.first_divergence(evclock.tools.read_trace(short), full)
     assert divergence is not None
     # Cut at 0.5 s before the control tick due then ran: the short run's last state sample
@@ -223,14 +227,11 @@ def _pixels_of(image: np.ndarray, color: str) -> int:
 @pytest.mark.pybullet
 @needs_record
 @needs_plot
-def test_plot_draws_each_loop_and_the_rtf(
-    recorded: tuple[Path, evclock.tools.RunReport], tmp_path: Path
-) -> None:
+def test_plot_draws_each_loop_and_the_rtf(recording: Path, tmp_path: Path) -> None:
     from matplotlib.image import imread
 
-    path, _ = recorded
     png = tmp_path / "run.png"
-    result = runner.invoke(app, ["plot", str(path), "-o", str(png)])
+    result = runner.invoke(app, ["plot", str(recording), "-o", str(png)])
     assert result.exit_code == 0, result.output
     image = imread(png)
     assert image.shape[:2] == (660, 1000)  # two loop panels and the rtf panel
