@@ -150,20 +150,21 @@ class Pacer:
             self._anchor = None
 
     def pause(self) -> None:
-        with self.lock:
-            self.paused = True
-            self._step_budget = 0
-            self._run_until_ns = None
-            self._mark_pending = False
-            self._update_unpaced()
+        self._set_paused(True)
 
     def resume(self) -> None:
+        self._set_paused(False)
+
+    def _set_paused(self, paused: bool) -> None:
+        """Pause or resume; either ends the steps and the ``step_until()`` under way, and a
+        resumed run is paced from now."""
         with self.lock:
-            self.paused = False
+            self.paused = paused
             self._step_budget = 0
             self._run_until_ns = None
             self._mark_pending = False
-            self._anchor = None
+            if not paused:
+                self._anchor = None
             self._update_unpaced()
 
     def step(self, count: int) -> None:
