@@ -52,23 +52,27 @@ const seconds = (value) => (value == null ? "-" : `${value.toFixed(3)} s`);
 const ms = (value) => (value == null ? "-" : `${(value * 1e3).toFixed(3)} ms`);
 const factor = (value) => (value == null ? "-" : `${value.toFixed(value < 10 ? 3 : 1)}\u00d7`);
 
+function tableRow(cells) {
+  const row = document.createElement("tr");
+  for (const value of cells) {
+    const cell = document.createElement("td");
+    cell.textContent = String(value);
+    row.append(cell);
+  }
+  return row;
+}
+
 function renderLoops(loops) {
   const body = $("loops").tBodies[0];
   body.replaceChildren(
     ...loops.map((loop) => {
-      const row = document.createElement("tr");
-      row.dataset.loop = loop.name;
-      const cells = [
+      const row = tableRow([
         loop.name, loop.hz, loop.policy, loop.ticks, loop.missed,
         ms(loop.mean_lateness_s), ms(loop.p50_lateness_s), ms(loop.p99_lateness_s),
         ms(loop.max_lateness_s), loop.run.ticks, loop.run.missed,
         ms(loop.run.mean_lateness_s), ms(loop.run.max_lateness_s),
-      ];
-      for (const value of cells) {
-        const cell = document.createElement("td");
-        cell.textContent = String(value);
-        row.append(cell);
-      }
+      ]);
+      row.dataset.loop = loop.name;
       return row;
     }),
   );
@@ -77,19 +81,10 @@ function renderLoops(loops) {
 function renderEpisodes(episodes) {
   const body = $("episodes").tBodies[0];
   body.replaceChildren(
-    ...episodes.map((episode) => {
-      const row = document.createElement("tr");
-      const cells = [
-        episode.number, episode.seed, episode.error || episode.outcome,
-        seconds(episode.started_at_s), seconds(episode.ended_at_s), seconds(episode.duration_s),
-      ];
-      for (const value of cells) {
-        const cell = document.createElement("td");
-        cell.textContent = String(value);
-        row.append(cell);
-      }
-      return row;
-    }),
+    ...episodes.map((episode) => tableRow([
+      episode.number, episode.seed, episode.error || episode.outcome,
+      seconds(episode.started_at_s), seconds(episode.ended_at_s), seconds(episode.duration_s),
+    ])),
   );
 }
 
