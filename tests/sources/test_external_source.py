@@ -66,6 +66,12 @@ class GrantedTime(TimeSource):
     def now_ns(self) -> int:
         return self._now
 
+    def listen(self) -> asyncio.AbstractEventLoop:
+        """Read the peer's grants on the running loop (:meth:`on_readable`); that loop."""
+        loop = asyncio.get_running_loop()
+        loop.add_reader(self.sock, self.on_readable)
+        return loop
+
     def on_readable(self) -> None:
         """The reader callback: record the newest grant (or the loss of the peer)."""
         data = self.sock.recv(4096)
@@ -119,8 +125,7 @@ def test_a_simeventloop_follows_granted_time_deadline_by_deadline() -> None:
     source, peer = pair([int(0.2 * NS), 1 * NS, 5 * NS])
 
     async def main() -> list[tuple[str, int]]:
-        loop = asyncio.get_running_loop()
-        loop.add_reader(source.sock, source.on_readable)
+        loop = source.listen()
         trace: list[tuple[str, int]] = []
         await controller(trace)
         trace.append(("done", evclock.clock().now_ns()))
@@ -144,8 +149,7 @@ def test_idle_time_follows_the_outside_and_a_lost_peer_ends_the_run() -> None:
     source, peer = pair([1 * NS, 3 * NS])
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        loop.add_reader(source.sock, source.on_readable)
+        source.listen()
         await asyncio.Event().wait()  # nothing scheduled: only the outside moves time
 
     loop = SimEventLoop(source)
@@ -163,8 +167,7 @@ def test_a_simdriver_follows_granted_time_too() -> None:
     source, peer = pair([int(0.2 * NS), 1 * NS, 5 * NS])
 
     async def main() -> list[tuple[str, int]]:
-        loop = asyncio.get_running_loop()
-        loop.add_reader(source.sock, source.on_readable)
+        loop = source.listen()
         trace: list[tuple[str, int]] = []
         async with SimDriver(source, rtf=None):
             await asyncio.wait_for(controller(trace), timeout=PEER_TIMEOUT)
@@ -183,8 +186,7 @@ def test_an_external_source_is_not_a_deadlock_when_idle() -> None:
     source, peer = pair([])  # the peer hangs up at the first request
 
     async def main() -> None:
-        loop = asyncio.get_running_loop()
-        loop.add_reader(source.sock, source.on_readable)
+        source.listen()
         await asyncio.Event().wait()
 
     loop = SimEventLoop(source)
