@@ -8,6 +8,7 @@ among the sets contiguous to the previous one, and the output depends only on th
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterator
 
 import pytest
 from hypothesis import given, settings
@@ -55,6 +56,15 @@ def without_flush_group(groups: list[Group], streams: Streams) -> list[Group]:
 
 def indices(group: Group) -> list[int]:
     return [item[1] for item in group]  # type: ignore[index]
+
+
+def with_previous(groups: list[Group], n: int) -> Iterator[tuple[list[int], list[int]]]:
+    """Each group's message indices per stream, after the previous group's (-1s at first)."""
+    previous = [-1] * n
+    for group in groups:
+        current = indices(group)
+        yield previous, current
+        previous = current
 
 
 def stamps_of(group: Group, streams: Streams) -> list[int]:
@@ -145,12 +155,10 @@ def test_max_interval_never_forms_wider_sets(case, max_interval) -> None:
     streams, order = case
     policy = ApproximatePolicy(len(streams), 100, max_interval_ns=max_interval)
     groups, _ = feed(policy, streams, order)
-    previous = [-1] * len(streams)
-    for group in groups:
-        stamps = stamps_of(group, streams)
+    for previous, current in with_previous(groups, len(streams)):
+        stamps = [streams[stream][index] for stream, index in enumerate(current)]
         assert max(stamps) - min(stamps) <= max_interval
-        assert all(c > p for c, p in zip(indices(group), previous, strict=True))
-        previous = indices(group)
+        assert all(c > p for c, p in zip(current, previous, strict=True))
     conservation(policy, groups, len(order))
 
 
@@ -160,12 +168,9 @@ def test_age_penalty_keeps_sets_used_once_non_crossing_and_contiguous(case, pena
     streams, order = case
     policy = ApproximatePolicy(len(streams), 100, age_penalty=penalty)
     groups, _ = feed(policy, streams, order)
-    previous = [-1] * len(streams)
-    for group in groups:
-        current = indices(group)
+    for previous, current in with_previous(groups, len(streams)):
         assert all(c > p for c, p in zip(current, previous, strict=True))
         assert any(c == p + 1 for c, p in zip(current, previous, strict=True))
-        previous = current
     conservation(policy, groups, len(order))
 
 
