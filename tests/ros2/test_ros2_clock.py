@@ -18,10 +18,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _ros2_helpers import jumps_on_reset, repeating
 
 import evclock
 from evclock import (
-    ClockJumpedError,
     ClockLostError,
     ClockMismatchError,
     InvalidArgumentError,
@@ -265,20 +265,9 @@ class Feed:
 def start_follower(endpoint: str, feed: Feed, first_ns: int, **options: Any) -> Ros2ClockSource:
     """Open a follower while the outside clock repeats ``first_ns`` (the follower waits for
     its first message during construction)."""
-    started = threading.Event()
-
-    def repeat() -> None:
-        while not started.wait(0.01):
-            feed(first_ns)
-
-    feeder = threading.Thread(target=repeat, daemon=True)
-    feeder.start()
-    try:
-        options.setdefault("startup_timeout", WAIT)
+    options.setdefault("startup_timeout", WAIT)
+    with repeating(feed, first_ns, WAIT):
         return Ros2ClockSource(connect=[endpoint], listen=[], **options)
-    finally:
-        started.set()
-        feeder.join(WAIT)
 
 
 @pytest.fixture
@@ -372,20 +361,7 @@ def test_follower_accepts_humble_keys(endpoint: str, outside: Any) -> None:
 def test_backward_clock_is_a_jump(endpoint: str, outside: Any) -> None:
     feed = Feed(outside)
     source = start_follower(endpoint, feed, 10 * S)
-
-    async def main() -> list[evclock.TimeJump]:
-        clk = evclock.clock()
-        jumps: list[evclock.TimeJump] = []
-        clk.on_jump(post=jumps.append)
-        sleeper = asyncio.ensure_future(clk.sleep(5))
-        await asyncio.sleep(0)
-        feed(3 * S)  # the simulator was reset
-        with pytest.raises(ClockJumpedError):
-            await sleeper
-        assert clk.now() == Time(3)
-        return jumps
-
-    (jump,) = evclock.run(main(), source=source)
+    (jump,) = evclock.run(jumps_on_reset(feed), source=source)
     assert (jump.before, jump.after) == (Time(10), Time(3))
 
 
@@ -435,24 +411,12 @@ def test_clock_url_in_the_environment_selects_the_follower(
     monkeypatch.setenv(
         "EVCLOCK_CLOCK", f"ros2:///clock?connect={endpoint}&listen=&startup_timeout=10"
     )
-    started = threading.Event()
-
-    def repeat() -> None:
-        while not started.wait(0.01):
-            feed(7 * S)
-
-    feeder = threading.Thread(target=repeat, daemon=True)
-    feeder.start()
 
     async def main() -> Time:
-        started.set()
         return evclock.clock().now()
 
-    try:
+    with repeating(feed, 7 * S, WAIT):
         assert evclock.run(main()) == Time(7)
-    finally:
-        started.set()
-        feeder.join(WAIT)
 
 
 def test_publisher_run_publishes_a_virtual_time_loop_at_a_rate(endpoint: str) -> None:

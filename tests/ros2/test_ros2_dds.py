@@ -15,13 +15,13 @@ import contextlib
 import os
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import pytest
+from _ros2_helpers import jumps_on_reset, repeating, run_draining
 
 import evclock
 from evclock import ClockJumpedError, ClockLostError, InvalidArgumentError, Time
@@ -54,22 +54,32 @@ Time_ = make_idl_struct(
     "Time_", "builtin_interfaces::msg::dds_::Time_", {"sec": t.int32, "nanosec": t.uint32}
 )
 Clock_ = make_idl_struct("Clock_", "rosgraph_msgs::msg::dds_::Clock_", {"clock": Time_})
-Gid_ = make_idl_struct("Gid_", "rmw_dds_common::msg::dds_::Gid_", {"data": t.array[t.uint8, 16]})
-NodeEntitiesInfo_ = make_idl_struct(
-    "NodeEntitiesInfo_",
-    "rmw_dds_common::msg::dds_::NodeEntitiesInfo_",
-    {
-        "node_namespace": t.bounded_str[256],
-        "node_name": t.bounded_str[256],
-        "reader_gid_seq": t.sequence[Gid_],
-        "writer_gid_seq": t.sequence[Gid_],
-    },
-)
-ParticipantEntitiesInfo_ = make_idl_struct(
-    "ParticipantEntitiesInfo_",
-    "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_",
-    {"gid": Gid_, "node_entities_info_seq": t.sequence[NodeEntitiesInfo_]},
-)
+
+
+def participant_entities_info(gid_size: int, suffix: str = "") -> Any:
+    """rmw_dds_common's ParticipantEntitiesInfo with ``gid_size``-byte gids (16 from Iron on,
+    24 on Humble); ``suffix`` tells the Python classes apart."""
+    gid = make_idl_struct(
+        f"Gid{suffix}_", "rmw_dds_common::msg::dds_::Gid_", {"data": t.array[t.uint8, gid_size]}
+    )
+    node = make_idl_struct(
+        f"NodeEntitiesInfo{suffix}_",
+        "rmw_dds_common::msg::dds_::NodeEntitiesInfo_",
+        {
+            "node_namespace": t.bounded_str[256],
+            "node_name": t.bounded_str[256],
+            "reader_gid_seq": t.sequence[gid],
+            "writer_gid_seq": t.sequence[gid],
+        },
+    )
+    return make_idl_struct(
+        f"ParticipantEntitiesInfo{suffix}_",
+        "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_",
+        {"gid": gid, "node_entities_info_seq": t.sequence[node]},
+    )
+
+
+ParticipantEntitiesInfo_ = participant_entities_info(16)
 
 
 BEST_EFFORT = Qos(Policy.Reliability.BestEffort, Policy.History.KeepLast(1))
@@ -266,26 +276,13 @@ def test_reliable_subscription_is_not_fed_and_evclock_says_so(
 def test_cli_run_publishes_exact_step_times_to_a_ros_subscriber(plain: DomainParticipant) -> None:
     pytest.importorskip("pybullet", reason="the kuka scenario needs PyBullet")
     reader = DataReader(plain, Topic(plain, "rt/clock", Clock_), qos=BEST_EFFORT)
-    run = subprocess.Popen(
-        [sys.executable, "-m", "evclock", "run", "kuka", "--ros2-clock", "--until", "0.5"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
     times: list[int] = []
-    try:
-        deadline = time.monotonic() + 60
-        while run.poll() is None and time.monotonic() < deadline:
-            times.extend(clock_ns(s) for s in take_all(reader))
-            time.sleep(0.002)
-        out, err = run.communicate(timeout=60)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.communicate()
-    times.extend(clock_ns(s) for s in take_all(reader))
-    assert run.returncode == 3, err  # status 3: cut short by --until, as asked
+    status, out, err = run_draining(
+        [sys.executable, "-m", "evclock", "run", "kuka", "--ros2-clock", "--until", "0.5"],
+        lambda: times.extend(clock_ns(s) for s in take_all(reader)),
+        ROOT,
+    )
+    assert status == 3, err  # status 3: cut short by --until, as asked
     assert "CUT SHORT at --until 0.5 s" in out
     assert "publishing /clock every step over DDS (rt/clock) in domain" in out
     assert times, "no /clock sample reached the subscriber"
@@ -311,20 +308,9 @@ class PlainClock:
 
 def start_follower(feed: PlainClock, first_ns: int, **options: Any) -> Ros2ClockSource:
     """Open a follower while the outside clock repeats ``first_ns``."""
-    started = threading.Event()
-
-    def repeat() -> None:
-        while not started.wait(0.01):
-            feed(first_ns)
-
-    feeder = threading.Thread(target=repeat, daemon=True)
-    feeder.start()
-    try:
-        options.setdefault("startup_timeout", WAIT)
+    options.setdefault("startup_timeout", WAIT)
+    with repeating(feed, first_ns, WAIT):
         return Ros2ClockSource(**options)
-    finally:
-        started.set()
-        feeder.join(WAIT)
 
 
 def test_follower_of_a_reliable_plain_publisher_fires_timers_exactly(
@@ -379,20 +365,7 @@ def test_follower_announces_its_node_and_subscription(plain: DomainParticipant) 
 def test_backward_clock_is_a_jump(plain: DomainParticipant) -> None:
     feed = PlainClock(plain)
     source = start_follower(feed, 10 * S)
-
-    async def main() -> list[evclock.TimeJump]:
-        clk = evclock.clock()
-        jumps: list[evclock.TimeJump] = []
-        clk.on_jump(post=jumps.append)
-        sleeper = asyncio.ensure_future(clk.sleep(5))
-        await asyncio.sleep(0)
-        feed(3 * S)  # the simulator was reset
-        with pytest.raises(ClockJumpedError):
-            await sleeper
-        assert clk.now() == Time(3)
-        return jumps
-
-    (jump,) = evclock.run(main(), source=source)
+    (jump,) = evclock.run(jumps_on_reset(feed), source=source)
     assert (jump.before, jump.after) == (Time(10), Time(3))
 
 
@@ -401,21 +374,11 @@ def test_domains_are_isolated(plain: DomainParticipant) -> None:
     worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")[2:]
     other = DomainParticipant(5 + (int(worker) if worker.isdigit() else 0) % 15)
     try:
-        feed = PlainClock(other)
-        stop = threading.Event()
-
-        def repeat() -> None:
-            while not stop.wait(0.01):
-                feed(5 * S)
-
-        feeder = threading.Thread(target=repeat, daemon=True)
-        feeder.start()
-        try:
-            with pytest.raises(ClockLostError, match=r"no /clock message arrived within"):
-                Ros2ClockSource(startup_timeout=0.5)
-        finally:
-            stop.set()
-            feeder.join(WAIT)
+        with (
+            repeating(PlainClock(other), 5 * S, WAIT),
+            pytest.raises(ClockLostError, match=r"no /clock message arrived within"),
+        ):
+            Ros2ClockSource(startup_timeout=0.5)
     finally:
         other.__del__()
 
@@ -544,20 +507,8 @@ def test_a_publisher_the_follower_cannot_accept_is_named_when_it_gives_up(
         Policy.DataRepresentation(use_xcdrv2_representation=True),
     )
     feed = PlainClock(plain, xcdr2_only)  # rmw_cyclonedds_cpp reads XCDR1 only, as evclock
-    stop = threading.Event()
-
-    def repeat() -> None:
-        while not stop.wait(0.01):
-            feed(1 * S)
-
-    feeder = threading.Thread(target=repeat, daemon=True)
-    feeder.start()
-    try:
-        with pytest.raises(ClockLostError) as lost:
-            Ros2ClockSource(startup_timeout=1.0)
-    finally:
-        stop.set()
-        feeder.join(WAIT)
+    with repeating(feed, 1 * S, WAIT), pytest.raises(ClockLostError) as lost:
+        Ros2ClockSource(startup_timeout=1.0)
     message = str(lost.value)
     assert "no /clock message arrived within startup_timeout=1 s" in message
     assert "publisher(s) of /clock offered a QoS this subscription" in message
@@ -567,24 +518,7 @@ def test_a_publisher_the_follower_cannot_accept_is_named_when_it_gives_up(
 def test_humble_publisher_announces_24_byte_gids_without_type_hashes(
     plain: DomainParticipant,
 ) -> None:
-    gid24 = make_idl_struct(
-        "Gid24_", "rmw_dds_common::msg::dds_::Gid_", {"data": t.array[t.uint8, 24]}
-    )
-    node24 = make_idl_struct(
-        "NodeEntitiesInfo24_",
-        "rmw_dds_common::msg::dds_::NodeEntitiesInfo_",
-        {
-            "node_namespace": t.bounded_str[256],
-            "node_name": t.bounded_str[256],
-            "reader_gid_seq": t.sequence[gid24],
-            "writer_gid_seq": t.sequence[gid24],
-        },
-    )
-    info24 = make_idl_struct(
-        "ParticipantEntitiesInfo24_",
-        "rmw_dds_common::msg::dds_::ParticipantEntitiesInfo_",
-        {"gid": gid24, "node_entities_info_seq": t.sequence[node24]},
-    )
+    info24 = participant_entities_info(24, "24")
     publications = BuiltinDataReader(plain, BuiltinTopicDcpsPublication)
     graph = DataReader(
         plain,

@@ -7,9 +7,7 @@ here from the message definitions; every wait is bounded. Loopback only, a test-
 
 from __future__ import annotations
 
-import subprocess
 import sys
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +17,7 @@ import pytest
 cyclonedds = pytest.importorskip("cyclonedds", reason="needs evclock[ros2] (cyclonedds)")
 rosbags_typesys = pytest.importorskip("rosbags.typesys", reason="needs rosbags")
 
+from _ros2_helpers import run_draining  # noqa: E402
 from cyclonedds.domain import DomainParticipant  # noqa: E402
 from cyclonedds.idl import make_idl_struct  # noqa: E402
 from cyclonedds.idl import types as t  # noqa: E402
@@ -99,32 +98,20 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     joints = DataReader(plain, Topic(plain, "rt/joint_states", JointState_), qos=RELIABLE)
     tf = DataReader(plain, Topic(plain, "rt/tf", TFMessage_), qos=RELIABLE)
     tf_static = DataReader(plain, Topic(plain, "rt/tf_static", TFMessage_), qos=STATIC)
-    run = subprocess.Popen(
-        [*EVCLOCK_RUN, "kuka", "--ros2", "--engine", engine, "--until", "0.25"],
-        cwd=ROOT,
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )
     states: list[Any] = []
     frames: list[Any] = []
-    try:
-        deadline = time.monotonic() + 60
-        while run.poll() is None and time.monotonic() < deadline:
-            states.extend(joints.take(256))
-            frames.extend(tf.take(256))
-            time.sleep(0.002)
-        out, err = run.communicate(timeout=60)
-    finally:
-        if run.poll() is None:
-            run.kill()
-            run.communicate()
-    states.extend(joints.take(256))
-    frames.extend(tf.take(256))
+
+    def drain() -> None:
+        states.extend(joints.take(256))
+        frames.extend(tf.take(256))
+
+    status, out, err = run_draining(
+        [*EVCLOCK_RUN, "kuka", "--ros2", "--engine", engine, "--until", "0.25"], drain, ROOT
+    )
     # The writers' end arrives as sample-less notifications (InvalidSample): data only.
     states = [s for s in states if isinstance(s, JointState_)]
     frames = [f for f in frames if isinstance(f, TFMessage_)]
-    assert run.returncode == 3, err  # cut short by --until, as asked
+    assert status == 3, err  # cut short by --until, as asked
     assert (
         "publishing /clock, /joint_states, /tf every step over DDS "
         "(rt/clock, rt/joint_states, rt/tf)" in out
