@@ -366,8 +366,8 @@ def write_raw(writer: Any, payload: bytes) -> None:
         raise Ros2MessageError(f"Cyclone DDS refused to write a sample (return code {ret})")
 
 
-class DdsWriter:
-    """One ROS 2 publisher's DDS writer: raw CDR samples, and what its QoS failed to match."""
+class _DdsEndpoint:
+    """What a node's writer and reader share: the raw entity, its topic, QoS and gid."""
 
     def __init__(self, node: DdsNode, raw: Any, topic: str, qos: DdsQos) -> None:
         self._node = node
@@ -376,6 +376,20 @@ class DdsWriter:
         self.qos = qos
         self.gid = node.entity_gid(raw)
         self.closed = False
+
+    @staticmethod
+    def _refusals(status: Any, who_refused_what: str) -> str | None:
+        """An incompatible-QoS ``status`` as a sentence (None: no refusal seen)."""
+        if status.total_count == 0:
+            return None
+        return (
+            f"{status.total_count} {who_refused_what}; the last mismatch: "
+            f"{describe_policy(status.last_policy_id)}"
+        )
+
+
+class DdsWriter(_DdsEndpoint):
+    """One ROS 2 publisher's DDS writer: raw CDR samples, and what its QoS failed to match."""
 
     def write(self, payload: bytes) -> None:
         """Send one sample."""
@@ -388,13 +402,10 @@ class DdsWriter:
 
     def incompatible(self) -> str | None:
         """Why readers found on this topic were refused (None: no refusal seen)."""
-        status = self._raw.get_offered_incompatible_qos_status()
-        if status.total_count == 0:
-            return None
-        return (
-            f"{status.total_count} subscription(s) to {self.topic} requested a QoS this "
-            f"publisher ({self.qos.describe()}) does not offer; the last mismatch: "
-            f"{describe_policy(status.last_policy_id)}"
+        return self._refusals(
+            self._raw.get_offered_incompatible_qos_status(),
+            f"subscription(s) to {self.topic} requested a QoS this publisher "
+            f"({self.qos.describe()}) does not offer",
         )
 
     def close(self) -> None:
@@ -406,7 +417,7 @@ class DdsWriter:
         self._node.forget(self)
 
 
-class DdsReader:
+class DdsReader(_DdsEndpoint):
     """One ROS 2 subscription's DDS reader, drained by a daemon thread of its own."""
 
     def __init__(
@@ -418,13 +429,8 @@ class DdsReader:
         deliver: Callable[[bytes], None],
         fail: Callable[[BaseException], None],
     ) -> None:
+        super().__init__(node, raw, topic, qos)
         dds = node._dds
-        self._node = node
-        self._raw = raw
-        self.topic = topic
-        self.qos = qos
-        self.gid = node.entity_gid(raw)
-        self.closed = False
         self._deliver = deliver
         self._fail = fail
         self._mask = dds.core.SampleState.Any | dds.core.ViewState.Any | dds.core.InstanceState.Any
@@ -446,13 +452,10 @@ class DdsReader:
 
     def incompatible(self) -> str | None:
         """Why publishers found on this topic were refused (None: no refusal seen)."""
-        status = self._raw.get_requested_incompatible_qos_status()
-        if status.total_count == 0:
-            return None
-        return (
-            f"{status.total_count} publisher(s) of {self.topic} offered a QoS this subscription "
-            f"({self.qos.describe()}) cannot accept; the last mismatch: "
-            f"{describe_policy(status.last_policy_id)}"
+        return self._refusals(
+            self._raw.get_requested_incompatible_qos_status(),
+            f"publisher(s) of {self.topic} offered a QoS this subscription "
+            f"({self.qos.describe()}) cannot accept",
         )
 
     def matched(self) -> int:

@@ -270,18 +270,7 @@ class Ros2ClockPublisher:
                 f"{type(source).__name__}; on another source publish at a sim-time rate with "
                 "run(hz)"
             )
-        period = _check_decimation(decimation)
-        self.publish(source.now_ns)
-        countdown = period
-
-        def publish_step() -> None:
-            nonlocal countdown
-            countdown -= 1
-            if countdown == 0:
-                countdown = period
-                self.publish(source.now_ns)
-
-        return source.add_step_hook(publish_step, when="after")
+        return publish_every(source, _check_decimation(decimation), self.publish)
 
     async def run(self, hz: float) -> None:
         """Publish the running loop's sim time at ``hz`` of sim time, until cancelled."""
@@ -323,6 +312,24 @@ class Ros2ClockPublisher:
         state = "closed" if self._closed else f"seq {self._sequence_number}"
         where = "rt" + self._topic if self._dds is not None else self._key_expr
         return f"<Ros2ClockPublisher {self._middleware} {where} ({self._wire.name}) {state}>"
+
+
+def publish_every(
+    source: SteppingTimeSource[Any], period: int, publish: Callable[[int], None]
+) -> StepHook:
+    """Call ``publish`` with ``source``'s time in ns now and after every ``period``-th physics
+    step; returns the step hook (``remove()`` stops it)."""
+    publish(source.now_ns)
+    countdown = period
+
+    def publish_step() -> None:
+        nonlocal countdown
+        countdown -= 1
+        if countdown == 0:
+            countdown = period
+            publish(source.now_ns)
+
+    return source.add_step_hook(publish_step, when="after")
 
 
 def _check_decimation(decimation: object) -> int:

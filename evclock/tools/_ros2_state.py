@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 from evclock._errors import InvalidArgumentError
 from evclock.ros2._dds import DdsNode, DdsQos
+from evclock.ros2._publisher import publish_every
 from evclock.ros2._types import message_class, serialize
 from evclock.ros2._wire import wire_format
 
@@ -163,18 +164,7 @@ def publishing_robot_state(
     if reader is None:
         raise InvalidArgumentError("--ros2 needs a PyBullet or MuJoCo world to read the robot from")
     publisher = RobotStatePublisher(reader, options)
-    period = options.decimation
-    countdown = period
-
-    def publish_step() -> None:
-        nonlocal countdown
-        countdown -= 1
-        if countdown == 0:
-            countdown = period
-            publisher.publish(source.now_ns)
-
-    publisher.publish(source.now_ns)
-    hook = source.add_step_hook(publish_step, when="after")
+    hook = publish_every(source, options.decimation, publisher.publish)
     try:
         yield publisher
     finally:
