@@ -47,7 +47,8 @@ LAYOUT_FILE = Path(__file__).with_name("foxglove_layout.json")
 # JSON schemas: Foxglove's well-known ones (by name), and those derived from user types
 
 
-def _object(title: str | None, properties: Mapping[str, Any]) -> dict[str, Any]:
+def object_schema(title: str | None, properties: Mapping[str, Any]) -> dict[str, Any]:
+    """The JSON schema of an object with these ``properties`` (titled unless None)."""
     schema: dict[str, Any] = {"type": "object", "properties": dict(properties)}
     if title is not None:
         schema = {"title": title, **schema}
@@ -56,25 +57,25 @@ def _object(title: str | None, properties: Mapping[str, Any]) -> dict[str, Any]:
 
 _NUMBER = {"type": "number"}
 _STRING = {"type": "string"}
-_TIME = _object("time", {"sec": {"type": "integer"}, "nsec": {"type": "integer"}})
-_DURATION = _object("duration", {"sec": {"type": "integer"}, "nsec": {"type": "integer"}})
-_VECTOR3 = _object("foxglove.Vector3", {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER})
-_QUATERNION = _object(
+_TIME = object_schema("time", {"sec": {"type": "integer"}, "nsec": {"type": "integer"}})
+_DURATION = object_schema("duration", {"sec": {"type": "integer"}, "nsec": {"type": "integer"}})
+_VECTOR3 = object_schema("foxglove.Vector3", {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER})
+_QUATERNION = object_schema(
     "foxglove.Quaternion", {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER, "w": _NUMBER}
 )
-_POSE = _object("foxglove.Pose", {"position": _VECTOR3, "orientation": _QUATERNION})
-_COLOR = _object("foxglove.Color", {"r": _NUMBER, "g": _NUMBER, "b": _NUMBER, "a": _NUMBER})
+_POSE = object_schema("foxglove.Pose", {"position": _VECTOR3, "orientation": _QUATERNION})
+_COLOR = object_schema("foxglove.Color", {"r": _NUMBER, "g": _NUMBER, "b": _NUMBER, "a": _NUMBER})
 
 
 def _array(items: Mapping[str, Any]) -> dict[str, Any]:
     return {"type": "array", "items": dict(items)}
 
 
-FRAME_TRANSFORMS_SCHEMA = _object(
+FRAME_TRANSFORMS_SCHEMA = object_schema(
     "foxglove.FrameTransforms",
     {
         "transforms": _array(
-            _object(
+            object_schema(
                 "foxglove.FrameTransform",
                 {
                     "timestamp": _TIME,
@@ -88,12 +89,12 @@ FRAME_TRANSFORMS_SCHEMA = _object(
     },
 )
 """``foxglove.FrameTransforms`` as JSON Schema."""
-JOINT_STATES_SCHEMA = _object(
+JOINT_STATES_SCHEMA = object_schema(
     "foxglove.JointStates",
     {
         "timestamp": _TIME,
         "joints": _array(
-            _object(
+            object_schema(
                 "foxglove.JointState",
                 {"name": _STRING, "position": _NUMBER, "velocity": _NUMBER, "effort": _NUMBER},
             )
@@ -101,7 +102,7 @@ JOINT_STATES_SCHEMA = _object(
     },
 )
 """``foxglove.JointStates`` as JSON Schema."""
-LOG_SCHEMA = _object(
+LOG_SCHEMA = object_schema(
     "foxglove.Log",
     {
         "timestamp": _TIME,
@@ -117,12 +118,12 @@ LOG_SCHEMA = _object(
 )
 """``foxglove.Log`` as JSON Schema."""
 _SIZED = {"pose": _POSE, "size": _VECTOR3, "color": _COLOR}
-SCENE_UPDATE_SCHEMA = _object(
+SCENE_UPDATE_SCHEMA = object_schema(
     "foxglove.SceneUpdate",
     {
-        "deletions": _array(_object("foxglove.SceneEntityDeletion", {"id": _STRING})),
+        "deletions": _array(object_schema("foxglove.SceneEntityDeletion", {"id": _STRING})),
         "entities": _array(
-            _object(
+            object_schema(
                 "foxglove.SceneEntity",
                 {
                     "timestamp": _TIME,
@@ -130,16 +131,16 @@ SCENE_UPDATE_SCHEMA = _object(
                     "id": _STRING,
                     "lifetime": _DURATION,
                     "frame_locked": {"type": "boolean"},
-                    "cubes": _array(_object("foxglove.CubePrimitive", _SIZED)),
-                    "spheres": _array(_object("foxglove.SpherePrimitive", _SIZED)),
+                    "cubes": _array(object_schema("foxglove.CubePrimitive", _SIZED)),
+                    "spheres": _array(object_schema("foxglove.SpherePrimitive", _SIZED)),
                     "cylinders": _array(
-                        _object(
+                        object_schema(
                             "foxglove.CylinderPrimitive",
                             {**_SIZED, "bottom_scale": _NUMBER, "top_scale": _NUMBER},
                         )
                     ),
                     "models": _array(
-                        _object(
+                        object_schema(
                             "foxglove.ModelPrimitive",
                             {
                                 "pose": _POSE,
@@ -230,7 +231,7 @@ def _type_schema(annotation: Any, seen: tuple[Any, ...]) -> dict[str, Any]:
             if dataclasses.is_dataclass(annotation)
             else list(hints)
         )
-        return _object(
+        return object_schema(
             None, {name: _type_schema(hints[name], (*seen, annotation)) for name in names}
         )
     raise InvalidTypeError(
@@ -271,7 +272,7 @@ def _value_schema(value: Any) -> dict[str, Any]:
     if value is None:
         return {}
     if isinstance(value, Mapping):
-        return _object(None, {str(k): _value_schema(v) for k, v in value.items()})
+        return object_schema(None, {str(k): _value_schema(v) for k, v in value.items()})
     if isinstance(value, list | tuple):
         return {"type": "array", "items": _value_schema(value[0]) if value else {}}
     return {}
@@ -637,7 +638,7 @@ class LiveView:
         step_schema = foxglove.Schema(
             name="evclock.Step",
             encoding="jsonschema",
-            data=json.dumps(_object("evclock.Step", {"steps": {"type": "integer"}})).encode(),
+            data=json.dumps(object_schema("evclock.Step", {"steps": {"type": "integer"}})).encode(),
         )
 
         def schema(request: Any) -> Any:

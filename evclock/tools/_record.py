@@ -45,6 +45,7 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError, MissingExtraError
+from evclock.tools._foxglove import object_schema
 
 if TYPE_CHECKING:
     from evclock.kernel._clock import Clock
@@ -65,38 +66,27 @@ due on a drift-free grid (``start + i x 0.05 s``, as a rate loop's deadlines), e
 the first physics step at or after its grid point."""
 _RESERVED_PREFIX = "/evclock/"
 
-_CLOCK_SCHEMA = {
-    "type": "object",
-    "title": "evclock.Clock",
-    "properties": {
-        "sim_time_s": {"type": "number"},
-        "wall_time_s": {"type": "number"},
+_NUMBER = {"type": "number"}
+
+_CLOCK_SCHEMA = object_schema(
+    "evclock.Clock",
+    {
+        "sim_time_s": _NUMBER,
+        "wall_time_s": _NUMBER,
         "achieved_rtf": {"type": ["number", "null"]},
     },
-}
-_TICK_SCHEMA = {
-    "type": "object",
-    "title": "evclock.Tick",
-    "properties": {
-        "loop": {"type": "string"},
-        "lateness_s": {"type": "number"},
-        "missed": {"type": "integer"},
-    },
-}
-_VECTOR_STATE_SCHEMA = {
-    "type": "object",
-    "title": "evclock.State",
-    "properties": {"state": {"type": "array", "items": {"type": "number"}}},
-}
-_JUMP_SCHEMA = {
-    "type": "object",
-    "title": "evclock.Jump",
-    "properties": {
-        "before_s": {"type": "number"},
-        "after_s": {"type": "number"},
-        "delta_s": {"type": "number"},
-    },
-}
+)
+_TICK_SCHEMA = object_schema(
+    "evclock.Tick",
+    {"loop": {"type": "string"}, "lateness_s": _NUMBER, "missed": {"type": "integer"}},
+)
+_VECTOR_STATE_SCHEMA = object_schema(
+    "evclock.State", {"state": {"type": "array", "items": _NUMBER}}
+)
+_JUMP_SCHEMA = object_schema(
+    "evclock.Jump",
+    {"before_s": _NUMBER, "after_s": _NUMBER, "delta_s": _NUMBER},
+)
 
 _ACTIVE: contextvars.ContextVar[Recorder | None] = contextvars.ContextVar(
     "evclock_recorder", default=None
