@@ -80,6 +80,14 @@ def fragile(tmp_path: Path) -> str:
     return str(path)
 
 
+@pytest.fixture
+def markers(tmp_path: Path) -> Path:
+    """The folder a fragile run of seed 5 and up writes its ``started-SEED`` marker in."""
+    path = tmp_path / "markers"
+    path.mkdir()
+    return path
+
+
 def test_parse_seeds() -> None:
     assert parse_seeds("0:4") == [0, 1, 2, 3]
     assert parse_seeds("7") == [7]  # --seed 7: that seed
@@ -276,10 +284,10 @@ def _kill_workers(markers: Path) -> None:
 
 
 @pytest.mark.pybullet
-def test_ctrl_c_stops_the_workers_and_writes_what_finished(fragile: str, tmp_path: Path) -> None:
+def test_ctrl_c_stops_the_workers_and_writes_what_finished(
+    fragile: str, markers: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "sweep.json"
-    markers = tmp_path / "markers"
-    markers.mkdir()
     proc = subprocess.Popen(
         [sys.executable, "-m", "evclock", "sweep", fragile, "--seeds", "3,4,5,6",
          "--param", f"marker_dir={markers}", "--workers", "1", "--json", str(out), "--quiet"],
@@ -335,10 +343,10 @@ def test_ray_backend_runs_mujoco_runs_for_real(tmp_path: Path) -> None:
 
 
 @pytest.mark.pybullet
-def test_a_run_over_its_wall_timeout_is_stopped_and_failed(fragile: str, tmp_path: Path) -> None:
+def test_a_run_over_its_wall_timeout_is_stopped_and_failed(
+    fragile: str, markers: Path, tmp_path: Path
+) -> None:
     out = tmp_path / "sweep.json"
-    markers = tmp_path / "markers"
-    markers.mkdir()
     # Seed 0 finishes well inside 10 s even on a loaded machine (start-up and PyBullet
     # included); seed 5 sleeps 600 s.
     result = runner.invoke(
