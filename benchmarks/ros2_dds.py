@@ -23,8 +23,6 @@ here), in domain ``ROS_DOMAIN_ID`` (else 42).
 from __future__ import annotations
 
 import argparse
-import asyncio
-import gc
 import json
 import os
 import statistics
@@ -42,9 +40,9 @@ os.environ["CYCLONEDDS_URI"] = LOOPBACK
 os.environ.setdefault("ROS_DOMAIN_ID", "42")
 os.environ["RMW_IMPLEMENTATION"] = "rmw_cyclonedds_cpp"
 
-import evclock  # noqa: E402
+from _clock_cost import best_rounds, print_rounds  # noqa: E402
+
 from evclock.ros2 import Ros2ClockPublisher  # noqa: E402
-from evclock_sims import get_scenario  # noqa: E402
 
 # A plain Cyclone DDS reader of rt/clock with ROS's type names: counts samples until stdin
 # closes (throughput), or notes when each arrives (latency, ``seen`` mode).
@@ -111,54 +109,20 @@ def child(code: str, *args: str) -> subprocess.Popen[str]:
     )
 
 
-def run_once(seconds: float, publisher: Ros2ClockPublisher | None) -> tuple[float, float, int]:
-    """Run KUKA for ``seconds`` of sim time; return (CPU s, wall s, steps)."""
-    source = evclock.sources.PyBulletTimeSource.connect()
-    scenario = get_scenario("kuka")(source.client, 0)
-    hook = publisher.attach(source) if publisher is not None else None
-
-    async def main() -> None:
-        try:
-            async with asyncio.timeout(seconds):
-                await scenario.run(evclock.clock())
-        except TimeoutError:
-            pass
-
-    cpu0, wall0 = time.process_time(), time.perf_counter()
-    evclock.run(main(), source=source)
-    cpu, wall = time.process_time() - cpu0, time.perf_counter() - wall0
-    if hook is not None:
-        hook.remove()
-    source.close()
-    return cpu, wall, source.step_index
-
-
 def throughput(seconds: float, repeat: int) -> None:
     reader = child(PLAIN_READER)
     assert reader.stdout is not None
     assert reader.stdin is not None
     assert reader.stdout.readline().strip() == "ready"
     publisher = Ros2ClockPublisher()
-    best: dict[str, tuple[float, float, int]] = {}
-    for _ in range(repeat):
-        for name, pub in (("plain", None), ("with /clock", publisher)):
-            gc.collect()
-            cpu, wall, steps = run_once(seconds, pub)
-            if name not in best or cpu < best[name][0]:
-                best[name] = (cpu, wall, steps)
+    best = best_rounds("kuka", seconds, repeat, publisher)
     published = publisher.sequence_number
     publisher.close()
     reader.stdin.close()
     received = json.loads(reader.stdout.readline())["count"]
     reader.wait()
     print("KUKA, 240 Hz physics, /clock over DDS every step")
-    print(f"{'variant':<14}{'steps':>8}{'steps/CPU s':>14}{'steps/wall s':>14}")
-    for name, (cpu, wall, steps) in best.items():
-        print(f"{name:<14}{steps:>8}{steps / cpu:>14,.0f}{steps / wall:>14,.0f}")
-    plain, clocked = best["plain"], best["with /clock"]
-    ratio = (clocked[2] / clocked[0]) / (plain[2] / plain[0])
-    wall_ratio = (clocked[2] / clocked[1]) / (plain[2] / plain[1])
-    print(f"ratio (with /clock / plain): {ratio:.3f} (CPU), {wall_ratio:.3f} (wall)")
+    print_rounds(best)
     print(f"samples published {published}, received by the other process {received}")
 
 
