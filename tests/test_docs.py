@@ -5,7 +5,6 @@ site's own build (``mkdocs build --strict``, a CI step) checks links and anchors
 
 from __future__ import annotations
 
-import importlib.util
 import re
 import shutil
 from pathlib import Path
@@ -13,6 +12,7 @@ from types import ModuleType
 from typing import Any
 
 import pytest
+from _examples import load_module
 
 import evclock
 
@@ -23,13 +23,7 @@ README = ROOT / "README.md"
 
 def _coverage() -> ModuleType:
     """docs/_hooks/api_coverage.py, the check the strict build runs as a MkDocs hook."""
-    path = DOCS / "_hooks" / "api_coverage.py"
-    spec = importlib.util.spec_from_file_location("api_coverage", path)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_module(DOCS / "_hooks" / "api_coverage.py")
 
 
 def test_every_public_name_has_a_docstring_and_is_in_the_api_reference() -> None:

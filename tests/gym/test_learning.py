@@ -4,9 +4,10 @@ policy then balances as ``evclock run cartpole``'s controller."""
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from typing import Any
+
+from _examples import load_module
 
 from evclock.gym import LinearPolicy, load_policy
 from evclock.tools import run_scenario
@@ -15,12 +16,7 @@ EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "cartpole_cem.py"
 
 
 def example() -> Any:
-    spec = importlib.util.spec_from_file_location("cartpole_cem", EXAMPLE)
-    assert spec is not None
-    assert spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_module(EXAMPLE)
 
 
 def test_the_cross_entropy_method_learns_to_balance(tmp_path: Path) -> None:
