@@ -88,6 +88,17 @@ RELIABLE = Qos(
 )
 
 
+def graph_reader(participant: DomainParticipant, info_type: Any = ParticipantEntitiesInfo_) -> Any:
+    """A reader of the graph announcements, as ``ros2 node list`` reads them (a late joiner:
+    transient local gives it the current announcement)."""
+    qos = Qos(
+        Policy.Reliability.Reliable(max_blocking_time=100_000_000),
+        Policy.Durability.TransientLocal,
+        Policy.History.KeepLast(1),
+    )
+    return DataReader(participant, Topic(participant, "ros_discovery_info", info_type), qos=qos)
+
+
 @pytest.fixture(autouse=True)
 def loopback_domain(loopback_dds: int) -> int:
     """Every test here: its own ROS domain, DDS on loopback only (tests/conftest.py)."""
@@ -236,17 +247,7 @@ def test_publisher_speaks_ros_names_types_qos_and_user_data(plain: DomainPartici
 
         wait_for(enclave, "evclock's participant with enclave=/;")
 
-        # The graph announcement, read as `ros2 node list` reads it (a late joiner: transient
-        # local gives it the current announcement).
-        graph = DataReader(
-            plain,
-            Topic(plain, "ros_discovery_info", ParticipantEntitiesInfo_),
-            qos=Qos(
-                Policy.Reliability.Reliable(max_blocking_time=100_000_000),
-                Policy.Durability.TransientLocal,
-                Policy.History.KeepLast(1),
-            ),
-        )
+        graph = graph_reader(plain)
         infos: list[Any] = []
         wait_for(lambda: bool(infos.extend(take_all(graph)) or infos), "the graph announcement")
         info = infos[-1]
@@ -335,15 +336,7 @@ def test_follower_of_a_reliable_plain_publisher_fires_timers_exactly(
 
 def test_follower_announces_its_node_and_subscription(plain: DomainParticipant) -> None:
     feed = PlainClock(plain)
-    graph = DataReader(
-        plain,
-        Topic(plain, "ros_discovery_info", ParticipantEntitiesInfo_),
-        qos=Qos(
-            Policy.Reliability.Reliable(max_blocking_time=100_000_000),
-            Policy.Durability.TransientLocal,
-            Policy.History.KeepLast(1),
-        ),
-    )
+    graph = graph_reader(plain)
     source = start_follower(feed, 0, node_name="evclock_ctl")
     try:
         nodes: list[Any] = []
@@ -520,15 +513,7 @@ def test_humble_publisher_announces_24_byte_gids_without_type_hashes(
 ) -> None:
     info24 = participant_entities_info(24, "24")
     publications = BuiltinDataReader(plain, BuiltinTopicDcpsPublication)
-    graph = DataReader(
-        plain,
-        Topic(plain, "ros_discovery_info", info24),
-        qos=Qos(
-            Policy.Reliability.Reliable(max_blocking_time=100_000_000),
-            Policy.Durability.TransientLocal,
-            Policy.History.KeepLast(1),
-        ),
-    )
+    graph = graph_reader(plain, info24)
     with Ros2ClockPublisher(wire_format="humble") as publisher:
         found: list[Any] = []
 
