@@ -32,8 +32,7 @@ import evclock
 from ._base import ClockLike, Metric, Scenario, TimeLike, pybullet
 from .husky import LEFT_WHEELS, RIGHT_WHEELS, TRACK, WHEEL_RADIUS
 
-# PyBullet only: importing this module without PyBullet fails naming the extra.
-p = pybullet()
+# PyBullet only, imported when used (not with this module): see husky.py.
 
 
 @dataclass(frozen=True)
@@ -81,7 +80,7 @@ def _stamp_clock(clock: ClockLike) -> evclock.data.StampClock:
 
 def _matrix(quaternion: np.ndarray) -> np.ndarray:
     """The rotation matrix of the unit ``quaternion`` (x, y, z, w)."""
-    return np.array(p.getMatrixFromQuaternion(quaternion.tolist())).reshape(3, 3)
+    return np.array(pybullet().getMatrixFromQuaternion(quaternion.tolist())).reshape(3, 3)
 
 
 class LandmarkFusion(Scenario):
@@ -118,6 +117,7 @@ class LandmarkFusion(Scenario):
         angle = float(self.rng.uniform(1.0, 1.6))
         inside = radius - float(self.rng.uniform(1.0, 2.0))
         self.landmark = np.array([inside * math.sin(angle), radius - inside * math.cos(angle), 0.5])
+        p = pybullet()
         shape = p.createCollisionShape(
             p.GEOM_CYLINDER, radius=0.1, height=1.0, physicsClientId=client
         )
@@ -137,7 +137,7 @@ class LandmarkFusion(Scenario):
     # -- sensors ---------------------------------------------------------------------------
 
     def _pose(self) -> tuple[np.ndarray, np.ndarray]:
-        position, orientation = p.getBasePositionAndOrientation(
+        position, orientation = pybullet().getBasePositionAndOrientation(
             self.robot, physicsClientId=self.client
         )
         return np.array(position), np.array(orientation)
@@ -241,6 +241,7 @@ class LandmarkFusion(Scenario):
     def _command_wheels(self, speed: float, turn: float) -> None:
         left = (speed - turn * TRACK / 2.0) / WHEEL_RADIUS
         right = (speed + turn * TRACK / 2.0) / WHEEL_RADIUS
+        p = pybullet()
         p.setJointMotorControlArray(
             self.robot,
             [*LEFT_WHEELS, *RIGHT_WHEELS],

@@ -19,8 +19,8 @@ import numpy as np
 
 from ._base import ClockLike, Metric, Scenario, pybullet, wrap_angle
 
-# PyBullet only: importing this module without PyBullet fails naming the extra.
-p = pybullet()
+# PyBullet only, imported when a world is built (not with this module): `evclock list` and
+# `evclock run husky --engine mujoco` name the scenario's engine without PyBullet installed.
 
 LEFT_WHEELS = (2, 4)
 """``front_left_wheel``, ``rear_left_wheel`` (joints 0, 1, 6-9 are fixed)."""
@@ -90,6 +90,7 @@ class HuskyPatrol(Scenario):
         heading = self.waypoints[-1] - self.waypoints[-2]
         ahead = 2.5 + float(self.rng.uniform(0.0, 0.5))
         self.obstacle_xy = self.waypoints[-1] + ahead * heading / np.linalg.norm(heading)
+        p = pybullet()
         shape = p.createCollisionShape(
             p.GEOM_BOX, halfExtents=OBSTACLE_HALF_EXTENTS, physicsClientId=client
         )
@@ -192,7 +193,7 @@ class HuskyPatrol(Scenario):
         self.pb.setJointMotorControlArray(
             self.robot,
             [*LEFT_WHEELS, *RIGHT_WHEELS],
-            p.VELOCITY_CONTROL,
+            pybullet().VELOCITY_CONTROL,
             targetVelocities=[left, left, right, right],
             forces=[self.wheel_force] * 4,
             physicsClientId=self.client,

@@ -49,9 +49,14 @@ from evclock.tools._cli_app import (
 from evclock.tools._cli_remote import TOKEN_FILE_HELP
 from evclock.tools._runs import parse_rtf, run_scenario
 from evclock.tools._scenarios import (
+    ENGINE_LABELS,
+    PYBULLET_WHEELS,
+    engines_of,
+    installed_engines,
     load_scenario,
     parameters,
     registered_scenarios,
+    require_engine,
 )
 
 
@@ -64,16 +69,20 @@ def list_scenarios(
         ),
     ] = False,
 ) -> None:
-    """List the registered scenarios (entry-point group evclock.scenarios).
+    """List the registered scenarios (entry-point group evclock.scenarios), the engines
+    each runs on and which of those are installed here.
 
-    A scenario whose extra is not installed is listed with what it needs,
-    and a note on stderr gives the command that installs it (exit status 0).
-    A registration that cannot be imported for another reason is listed as
-    broken, with its error; the exit status is 2, the others are listed.
+    A scenario none of whose engines is installed, or whose extra is not,
+    is listed with what it needs, and a note on stderr gives the command that
+    installs it (exit status 0). A registration that cannot be imported for
+    another reason is listed as broken, with its error; the exit status is 2,
+    the others are listed.
     """
     table = Table(title="scenarios")
     table.add_column("name")
     table.add_column("sim seconds", justify="right")
+    table.add_column("engines")
+    table.add_column("installed")
     table.add_column("description")
     table.add_column("from")
     try:
@@ -81,6 +90,7 @@ def list_scenarios(
     except EvClockError as exc:
         print_error(exc)
         raise typer.Exit(EXIT_USAGE) from None
+    installed = installed_engines()
     missing: dict[str, list[str]] = {}  # error message -> scenario names (insertion order)
     loaded: list[type[Any]] = []
     broken: list[str] = []
@@ -90,22 +100,38 @@ def list_scenarios(
         except MissingExtraError as exc:
             need = f"evclock[{exc.extra}]" if exc.extra else "an optional dependency"
             table.add_row(
-                escape(entry.name), "-", escape(f"(needs {need})"), escape(entry.distribution)
+                escape(entry.name),
+                "-",
+                "-",
+                "-",
+                escape(f"(needs {need})"),
+                escape(entry.distribution),
             )
             missing.setdefault(str(exc), []).append(entry.name)
         except Exception as exc:  # a third-party registration must not hide the others
             table.add_row(
-                escape(entry.name), "-", "(broken: see the error below)", escape(entry.distribution)
+                escape(entry.name),
+                "-",
+                "-",
+                "-",
+                "(broken: see the error below)",
+                escape(entry.distribution),
             )
             detail = str(exc) if isinstance(exc, EvClockError) else f"{type(exc).__name__}: {exc}"
             broken.append(f"scenario {entry.name!r} ({entry.target}) cannot be loaded: {detail}")
         else:
+            engines = engines_of(cls)
+            here = [engine for engine in engines if engine in installed]
             table.add_row(
                 escape(entry.name),
                 f"{cls.default_until:g}",
+                escape(", ".join(engines)),
+                escape(", ".join(here) or "none"),
                 escape(str(cls.description)),
                 escape(entry.distribution),
             )
+            if not here:
+                missing.setdefault(_no_engine_note(engines), []).append(entry.name)
             if verbose:
                 loaded.append(cls)
     Console().print(table)
@@ -121,6 +147,18 @@ def list_scenarios(
         stderr.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
     if broken:
         raise typer.Exit(EXIT_USAGE)
+
+
+def _no_engine_note(engines: tuple[str, ...]) -> str:
+    """Why a scenario running on ``engines``, none of them installed, cannot run, and how to
+    install one."""
+    labels = " nor ".join(ENGINE_LABELS.get(engine, engine) for engine in engines)
+    hints = " or ".join(
+        f"pip install 'evclock[{engine}]'" for engine in sorted(engines, key="mujoco".__ne__)
+    )
+    status = f"neither {labels} is installed" if len(engines) > 1 else f"{labels} is not installed"
+    note = f"{status}: {hints}"
+    return f"{note} ({PYBULLET_WHEELS})" if "pybullet" in engines else note
 
 
 def parameter_help(cls: type[Any]) -> dict[str, str]:
@@ -273,6 +311,9 @@ def run_command(
         check_seed(seed)
         check_until(until)
         pace = parse_rtf(rtf)
+        # An unknown scenario, or an engine it does not run on or that is not installed,
+        # fails here, before any output.
+        require_engine(load_scenario(scenario), engine)
         ros2_options = ros2_cli.options_from_cli(
             ros2_clock,
             ros_domain_id,
@@ -296,7 +337,6 @@ def run_command(
         for path, option in ((json_out, "--json"), (record, "--record")):
             if path is not None:
                 check_writable(path, option)
-        load_scenario(scenario)  # an unknown scenario fails here, before any output
         values = parse_params(scenario, param or [])
         multi = [name for name, vals in values.items() if len(vals) != 1]
         if multi:

@@ -185,7 +185,7 @@ def render_report(report: RunReport, console: Console) -> None:
             highlight=False,
             markup=True,
         )
-    table = Table(title=f"{report.scenario}: rate loops ({report.mode} time)")
+    table = Table(title=escape(f"{report.scenario}: rate loops ({report.mode} time)"))
     for column in ("loop", "Hz", "ticks", "missed", "mean late ms", "p99 late ms", "max late ms"):
         if column == "loop":
             table.add_column(column, no_wrap=True, min_width=16)
@@ -194,7 +194,7 @@ def render_report(report: RunReport, console: Console) -> None:
     for loop in report.loops:
         s = loop.stats
         table.add_row(
-            loop.name,
+            escape(loop.name),
             f"{loop.hz:g}",
             str(s["ticks"]),
             str(s["missed"]),
@@ -208,15 +208,15 @@ def render_report(report: RunReport, console: Console) -> None:
     summary.add_column("metric")
     summary.add_column("value", justify="right")
     for key, value in report.summary.items():
-        summary.add_row(key, _format_value(value))
+        summary.add_row(escape(key), escape(_format_value(value)))
     for key, value in report.params.items():
-        summary.add_row(f"param {key}", _format_value(value))
+        summary.add_row(escape(f"param {key}"), escape(_format_value(value)))
     rtf = "-" if report.achieved_rtf is None else f"{report.achieved_rtf:.2f}"
     summary.add_row("sim time s", f"{report.sim_time_s:.3f}")
     summary.add_row("wall time s", f"{report.wall_time_s:.3f}")
     summary.add_row("achieved rtf", rtf)
     console.print(summary)
-    head = f"{report.scenario} (seed {report.seed})"
+    head = escape(f"{report.scenario} (seed {report.seed})")
     if report.error is not None:
         console.print(
             f"{head}: [red]ERROR[/red] {escape(report.error)} at {report.sim_time_s:g} s",

@@ -147,12 +147,12 @@ def serve_scenario(
         install_step_hooks,
         scenario_class,
     )
-    from evclock.tools._scenarios import check_engine, open_world
+    from evclock.tools._scenarios import open_world, require_engine
 
     if wall:
         raise InvalidArgumentError("--serve serves sim time: drop --wall")
     cls = scenario_class(name, {})
-    check_engine(cls, engine)
+    require_engine(cls, engine)
     limit = _limit(cls, until)
     opened, scenario = open_world(cls, seed, engine=engine, gui=gui)
     source: Any = opened  # PyBullet's or MuJoCo's: a stepping source either way
@@ -337,7 +337,7 @@ def control_scenario(
     ``policy`` (a scenario's ``policy`` parameter: a trained policy, see ``evclock.gym``)
     replaces its agent's controller."""
     from evclock.tools._runs import RunReport, _loop_reports, _Outcome, scenario_class
-    from evclock.tools._scenarios import check_engine
+    from evclock.tools._scenarios import require_engine
 
     scheme = urllib.parse.urlsplit(clock_url).scheme if isinstance(clock_url, str) else None
     if scheme not in ("unix", "tcp"):
@@ -349,7 +349,7 @@ def control_scenario(
         )
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
     cls = scenario_class(name, {} if policy is None else {"policy": policy})
-    check_engine(cls, engine)
+    require_engine(cls, engine)
     limit = _limit(cls, until)
     scenario = _private_copy(cls, seed, engine)
     if parsed.scheme == "tcp" and token is None and parsed.token is None:

@@ -18,6 +18,7 @@ from typing import Annotated, Literal
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -42,7 +43,7 @@ from evclock.tools._cli_app import (
     print_error,
     with_exit_statuses,
 )
-from evclock.tools._scenarios import ParamValue
+from evclock.tools._scenarios import ParamValue, check_engine, load_scenario, require_engine
 from evclock.tools._sweep import (
     BACKENDS,
     SweepDirectory,
@@ -130,16 +131,16 @@ def render_groups(
     if not groups:
         return
     title = "by " + ", ".join(names) if names else "over the runs"
-    table = Table(title=f"{result.name}: metrics {title}")
+    table = Table(title=escape(f"{result.name}: metrics {title}"))
     for name in names:
-        table.add_column(name, no_wrap=True)
+        table.add_column(escape(name), no_wrap=True)
     table.add_column("runs ok", justify="right", no_wrap=True)
     table.add_column("metric", no_wrap=True)
     table.add_column("mean ± 95% interval", justify="right", no_wrap=True)
     table.add_column("std", justify="right", no_wrap=True)
     for group in groups:
         ok = group["statuses"].get("success", 0)
-        head = [*_params_text(group["params"], names), f"{ok}/{group['runs']}"]
+        head = [*map(escape, _params_text(group["params"], names)), f"{ok}/{group['runs']}"]
         blank = [""] * len(head)
         shown = {m: group["metrics"][m] for m in metrics if m in group["metrics"]}
         if not shown:
@@ -149,7 +150,7 @@ def render_groups(
             if d["ci95"] is not None:
                 mean += f" ± {(d['ci95'][1] - d['ci95'][0]) / 2:.2g}"
             label = metric if d["n"] == group["runs"] else f"{metric} (of {d['n']})"
-            table.add_row(*(head if i == 0 else blank), label, mean, _number(d["std"]))
+            table.add_row(*(head if i == 0 else blank), escape(label), mean, _number(d["std"]))
         table.add_section()
     console.print(table)
 
@@ -187,7 +188,7 @@ def render_sweep(
     rate = summary["success_rate"]
     counts = ", ".join(f"{n} {status}" for status, n in summary["status_counts"].items())
     engine = "" if result.engine == "pybullet" else f" on {result.engine}"
-    head = f"{result.name}{engine}: {summary['done']}/{summary['planned']} runs ({counts})"
+    head = escape(f"{result.name}{engine}: {summary['done']}/{summary['planned']} runs ({counts})")
     if result.resumed:
         head += f", {result.resumed} from the earlier sweep in --out"
     if result.interrupted:
@@ -200,7 +201,7 @@ def render_sweep(
     for q in ("min", "p5", "median", "p95", "max"):
         table.add_column(q, justify="right")
     for field, values in summary["quantiles"].items():
-        table.add_row(field, *(f"{v:.4g}" for v in values.values()))
+        table.add_row(escape(field), *(f"{v:.4g}" for v in values.values()))
     console.print(table)
     render_groups(result, console, metrics)
     if len(result.swept) > 1:  # then each parameter on its own, over the others' values
@@ -211,8 +212,12 @@ def render_sweep(
     failed = result.failed
     for row in failed[:_SHOWN_FAILURES]:
         reason = row.error or row.status
-        console.print(f"[red]{row.status}[/red] seed {row.spec.seed}: {reason}", soft_wrap=True)
-        console.print(f"  reproduce: {row.spec.command()}", soft_wrap=True, highlight=False)
+        console.print(
+            f"[red]{row.status}[/red] seed {row.spec.seed}: {escape(reason)}", soft_wrap=True
+        )
+        console.print(
+            f"  reproduce: {row.spec.command()}", soft_wrap=True, highlight=False, markup=False
+        )
     if len(failed) > _SHOWN_FAILURES:
         console.print(f"... and {len(failed) - _SHOWN_FAILURES} more (see --json)")
 
@@ -434,6 +439,8 @@ def sweep_command(
             else parse_seeds(seeds or "10", count=True)
         )
         specs = plan(scenario, chosen, parse_params(scenario, param or []), until, engine)
+        # Before anything runs: the engine, installed here unless a Ray cluster runs the runs.
+        (require_engine if address is None else check_engine)(load_scenario(scenario), engine)
         done = 0 if directory is None else len(directory.finished(specs))
         display = SweepProgress(console, len(specs), quiet, done=done)
         with display.progress:

@@ -35,10 +35,10 @@ from evclock.kernel._clock import Clock
 from evclock.kernel._pacing import check_rtf
 from evclock.tools._scenarios import (
     ParamValue,
-    check_engine,
     configure,
     load_scenario,
     open_engine,
+    require_engine,
 )
 
 if TYPE_CHECKING:
@@ -332,7 +332,7 @@ def run_scenario(
         raise InvalidTypeError(f"seed must be an int, got {seed!r}")
     params = dict(params or {})
     cls = scenario_class(scenario, params)
-    check_engine(cls, engine)
+    require_engine(cls, engine)
     if engine == "mujoco" and gui:  # before the display check: no display would do
         raise InvalidArgumentError(
             "--gui opens PyBullet's GUI, which MuJoCo runs do not have: drop --gui"

@@ -350,6 +350,90 @@ def check_engine(cls: type[Any], engine: str) -> None:
         )
 
 
+ENGINE_LABELS = {"pybullet": "PyBullet", "mujoco": "MuJoCo"}
+"""How messages name each engine."""
+
+_ENGINE_MODULES = {"pybullet": ("pybullet", "pybullet_data"), "mujoco": ("mujoco",)}
+
+PYBULLET_WHEELS = (
+    "PyBullet has wheels for CPython 3.11 only; on another Python pip builds it from source, "
+    "which needs a C++ compiler and about half an hour"
+)
+"""Where ``pip install 'evclock[pybullet]'`` installs quickly, for messages that suggest it."""
+
+
+def installed_engines() -> tuple[str, ...]:
+    """The engines of :data:`ENGINES` whose modules are installed here (found, not imported).
+
+    :returns: engine names, in the order of :data:`ENGINES`.
+    """
+    return tuple(
+        engine
+        for engine in ENGINES
+        if all(importlib.util.find_spec(module) is not None for module in _ENGINE_MODULES[engine])
+    )
+
+
+def _install_hint(engine: str) -> str:
+    hint = f"pip install 'evclock[{engine}]'"
+    return f"{hint} ({PYBULLET_WHEELS})" if engine == "pybullet" else hint
+
+
+def require_engine(cls: type[Any], engine: str) -> None:
+    """Check that scenario class ``cls`` runs on ``engine`` (:func:`check_engine`) and that
+    ``engine`` is installed: the one check every command and option takes before a run.
+
+    :param cls: a scenario class.
+    :param engine: ``"pybullet"`` or ``"mujoco"``.
+    :raises InvalidTypeError: ``engine`` is not a string.
+    :raises InvalidArgumentError: an unknown engine, or one the scenario does not run on (the
+        message names the engines it runs on, and how to install them when none is).
+    :raises MissingExtraError: ``engine`` is not installed; the message names the extra, where
+        it installs, and the scenario's other engine when it has one.
+    """
+    installed = installed_engines()
+    supported = engines_of(cls)
+    if (
+        isinstance(engine, str)
+        and engine in ENGINES
+        and engine not in supported
+        and not any(e in installed for e in supported)
+    ):
+        labels = " and ".join(ENGINE_LABELS.get(e, e) for e in supported)
+        raise InvalidArgumentError(
+            f"scenario {cls.name!r} runs on {labels} only, not on {ENGINE_LABELS[engine]}, "
+            f"and {labels} is not installed here: " + "; ".join(_install_hint(e) for e in supported)
+        )
+    check_engine(cls, engine)
+    if engine in installed:
+        return
+    label = ENGINE_LABELS[engine]
+    others = [e for e in supported if e != engine]
+    if engine == "pybullet" and others:
+        other = others[0]
+        how = f"--engine {other}"
+        if other not in installed:
+            how = f"{_install_hint(other)}, then {how}"
+        message = (
+            f"scenario {cls.name!r} runs on {label} by default, which is not installed: "
+            f"{_install_hint(engine)}; or run it on {ENGINE_LABELS[other]}: {how}"
+        )
+    elif others:
+        message = f"--engine {engine}: {label} is not installed: {_install_hint(engine)}"
+        if others[0] in installed:
+            message += (
+                f"; or drop --engine {engine} to run {cls.name!r} on {ENGINE_LABELS[others[0]]}"
+            )
+    else:
+        message = (
+            f"scenario {cls.name!r} runs on {label} only, which is not installed: "
+            f"{_install_hint(engine)}"
+        )
+    error = MissingExtraError(message, name=_ENGINE_MODULES[engine][0])
+    error.extra = engine
+    raise error
+
+
 def open_engine(
     cls: type[Any], engine: str = "pybullet", *, gui: bool = False
 ) -> tuple[SteppingTimeSource[Any] | None, Any]:
@@ -368,7 +452,7 @@ def open_engine(
     :raises InvalidArgumentError: an unknown or unsupported engine, or ``gui`` on MuJoCo.
     :raises MissingExtraError: the engine is not installed; the message names its extra.
     """
-    check_engine(cls, engine)
+    require_engine(cls, engine)
     if engine == "mujoco":
         if gui:
             raise InvalidArgumentError(
@@ -379,18 +463,7 @@ def open_engine(
         return None, MuJoCoWorld()
     from evclock.sources import PyBulletTimeSource
 
-    try:
-        source = PyBulletTimeSource.connect(gui=gui)
-    except MissingExtraError as exc:
-        if "mujoco" not in engines_of(cls):
-            raise
-        error = MissingExtraError(
-            f"scenario {cls.name!r} runs on PyBullet by default, which is not installed: "
-            "pip install 'evclock[pybullet]'; or run it on MuJoCo: --engine mujoco",
-            name="pybullet",
-        )
-        error.extra = "pybullet"
-        raise error from exc
+    source = PyBulletTimeSource.connect(gui=gui)
     return source, source.client
 
 

@@ -52,6 +52,7 @@ from evclock.tools._scenarios import (
     check_engine,
     is_file_reference,
     load_scenario,
+    require_engine,
     split_file_reference,
 )
 
@@ -805,7 +806,8 @@ def sweep(
         the scenario does not run on (or several engines).
     :raises InvalidTypeError: ``workers`` is not an int.
     :raises ScenarioError: the scenario cannot be imported.
-    :raises MissingExtraError: ``backend="ray"`` without Ray (``pip install 'evclock[ray]'``).
+    :raises MissingExtraError: ``backend="ray"`` without Ray (``pip install 'evclock[ray]'``),
+        or the engine is not installed here (unless ``address`` names a Ray cluster).
 
     Example::
 
@@ -839,7 +841,10 @@ def sweep(
             f"a sweep runs on one engine; these runs name {' and '.join(map(str, engines))}: "
             "sweep each engine on its own"
         )
-    check_engine(cls, engines[0])
+    if address is None:  # the runs use this machine's packages: its engine must be installed
+        require_engine(cls, engines[0])
+    else:  # a Ray cluster's own environment has the engine or not
+        check_engine(cls, engines[0])
     name = str(cls.name)
     directory = None if out_dir is None else SweepDirectory(out_dir)
     rows: dict[int, SweepRow] = {}

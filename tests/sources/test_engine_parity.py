@@ -368,7 +368,7 @@ def test_the_shipped_models_are_pybullet_datas_byte_for_byte() -> None:
         pytest.param(
             ["run", "husky"],
             "error: scenario 'husky' runs on pybullet only, not on mujoco: drop --engine mujoco",
-            marks=needs_pybullet,  # without PyBullet, husky does not even import
+            marks=needs_pybullet,  # without it: tests/tools/test_cli_missing_engines.py
         ),
     ],
 )
@@ -385,5 +385,7 @@ def test_evclock_run_without_pybullet_points_to_mujoco() -> None:
     assert result.returncode == 2, result.stdout + result.stderr
     assert " ".join(result.stderr.split()) == (
         "error: scenario 'kuka' runs on PyBullet by default, which is not installed: pip "
-        "install 'evclock[pybullet]'; or run it on MuJoCo: --engine mujoco"
+        "install 'evclock[pybullet]' (PyBullet has wheels for CPython 3.11 only; on another "
+        "Python pip builds it from source, which needs a C++ compiler and about half an hour); "
+        "or run it on MuJoCo: --engine mujoco"
     )
