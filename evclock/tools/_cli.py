@@ -361,7 +361,8 @@ def run_command(
 
         live, pace = foxglove_option(foxglove, foxglove_addr, pace, serve=serve)
         token, written = _serve_token(serve, token_file)
-        with _removed(written), progress_bar(console, quiet) as progress, live:
+        recorded_before = file_identity(record)
+        with _removed(written), progress_bar(None, quiet) as progress, live:
             if serve is not None:
                 report = _served(serve, remote_controllers)(
                     scenario,
@@ -398,6 +399,8 @@ def run_command(
     render_report(report, console)
     if json_out is not None:
         json_out.write_text(json.dumps(report.to_json(), indent=2))
+    if record is not None and file_identity(record) not in (None, recorded_before):
+        console.print(f"wrote the recording to {record}", markup=False, highlight=False)
     if report.error is not None:
         print_run_error(report, verbose)
     raise typer.Exit(exit_code(report))
@@ -429,6 +432,16 @@ def _removed(path: Path | None) -> Iterator[None]:
             path.unlink(missing_ok=True)
 
 
+def file_identity(path: Path | None) -> tuple[int, int, int] | None:
+    """What changes when ``path`` is written (inode, size, modification time in ns), or None
+    when there is no such file: a run that ended before its recorder opened wrote nothing."""
+    try:
+        found = path.stat() if path is not None else None
+    except OSError:
+        return None
+    return None if found is None else (found.st_ino, found.st_size, found.st_mtime_ns)
+
+
 def _served(address: str, remote_controllers: bool) -> Any:
     from evclock.tools._cli_remote import serve_scenario
 
@@ -443,6 +456,19 @@ def _register_remote() -> None:
 
 
 _register_remote()
+
+
+def _usage_message(exc: Exception) -> str:
+    """The message of click usage error ``exc``, without what a validator's parser adds: the
+    typer versions that validate through pydantic prefix the message of a ``ValueError`` (an
+    unknown ``--engine``) with pydantic's ``Value error, ``."""
+    cause = exc.__cause__
+    found = getattr(cause, "errors", None)
+    details = found() if callable(found) else []
+    message = getattr(exc, "message", None)
+    if details and details[0].get("type") == "value_error" and isinstance(message, str):
+        exc.message = message.removeprefix("Value error, ")  # type: ignore[attr-defined]
+    return str(exc.format_message())  # type: ignore[attr-defined]
 
 
 def main(args: list[str] | None = None) -> None:
@@ -473,7 +499,7 @@ def main(args: list[str] | None = None) -> None:
         sys.exit(exc.exit_code)  # type: ignore[attr-defined]
     except errors.UsageError as exc:
         hint = f"; see '{exc.ctx.command_path} --help'" if exc.ctx is not None else ""
-        print_error(f"{exc.format_message().rstrip('.')}{hint}")
+        print_error(f"{_usage_message(exc).rstrip('.')}{hint}")
         sys.exit(EXIT_USAGE)
     except errors.ClickException as exc:
         print_error(exc.format_message())

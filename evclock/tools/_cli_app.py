@@ -191,10 +191,14 @@ def render_report(report: RunReport, console: Console) -> None:
             table.add_column(column, no_wrap=True, min_width=16)
         else:
             table.add_column(column, justify="right")
+    between = [loop for loop in report.loops if loop.on_physics_steps is False]
+    if between and report.physics_step_s is not None:
+        table.caption = escape(quantisation_note(report.physics_step_s))
+        table.caption_justify = "left"
     for loop in report.loops:
         s = loop.stats
         table.add_row(
-            escape(loop.name),
+            escape(loop.name) + (" *" if loop in between else ""),
             f"{loop.hz:g}",
             str(s["ticks"]),
             str(s["missed"]),
@@ -211,10 +215,13 @@ def render_report(report: RunReport, console: Console) -> None:
         summary.add_row(escape(key), escape(_format_value(value)))
     for key, value in report.params.items():
         summary.add_row(escape(f"param {key}"), escape(_format_value(value)))
-    rtf = "-" if report.achieved_rtf is None else f"{report.achieved_rtf:.2f}"
-    summary.add_row("sim time s", f"{report.sim_time_s:.3f}")
-    summary.add_row("wall time s", f"{report.wall_time_s:.3f}")
-    summary.add_row("achieved rtf", rtf)
+    if report.mode == "wall":  # no sim time: the controllers ran on the wall clock
+        summary.add_row("wall time s", f"{report.wall_time_s:.3f}")
+    else:
+        rtf = "-" if report.achieved_rtf is None else f"{report.achieved_rtf:.2f}"
+        summary.add_row("sim time s", f"{report.sim_time_s:.3f}")
+        summary.add_row("wall time s", f"{report.wall_time_s:.3f}")
+        summary.add_row("achieved rtf", rtf)
     console.print(summary)
     head = escape(f"{report.scenario} (seed {report.seed})")
     if report.error is not None:
@@ -240,6 +247,17 @@ def render_report(report: RunReport, console: Console) -> None:
         console.print(f"{head}: [red]FAILED[/red]")
 
 
+def quantisation_note(step_s: float) -> str:
+    """The run table's note on the loops marked ``*``: deadlines between physics steps of
+    ``step_s`` seconds, their lateness that quantisation."""
+    step = f"{step_s * 1e3:.3f} ms"
+    return (
+        f"* deadlines between physics steps (one step: {step}): a tick runs at the first step "
+        f"at or after its deadline, so its lateness, up to {step}, is that quantisation, not a "
+        "delay (docs: guides/rates-timers-jumps.md, 'Deadlines between physics steps')"
+    )
+
+
 def exit_code(report: RunReport) -> int:
     """The exit status of ``evclock run`` for ``report``."""
     if report.error is not None:
@@ -251,8 +269,21 @@ def exit_code(report: RunReport) -> int:
     return EXIT_SUCCESS if report.success else EXIT_FAILED
 
 
-def progress_bar(console: Console, quiet: bool) -> Progress:
-    """The single-run progress bar (refreshed by the run: no background thread)."""
+def progress_console(console: Console | None, quiet: bool) -> tuple[Console, bool]:
+    """The console a progress bar draws on and whether the bar is off. By default (``console``
+    None) stderr, so that stdout holds only the results, and off with ``quiet`` or when stderr
+    is not a terminal (a bar's redraws are no use in a pipe or a log file); a given
+    ``console`` is used as it is, off only with ``quiet``."""
+    if console is not None:
+        return console, quiet
+    console = Console(stderr=True)
+    return console, quiet or not console.is_terminal
+
+
+def progress_bar(console: Console | None, quiet: bool) -> Progress:
+    """The single-run progress bar, by default on stderr and only on a terminal (see
+    :func:`progress_console`; refreshed by the run: no background thread)."""
+    console, off = progress_console(console, quiet)
     columns = (
         TextColumn("[bold]{task.description}"),
         BarColumn(),
@@ -260,4 +291,4 @@ def progress_bar(console: Console, quiet: bool) -> Progress:
         TextColumn("rtf {task.fields[rtf]}"),
         TimeElapsedColumn(),
     )
-    return Progress(*columns, console=console, disable=quiet, auto_refresh=False)
+    return Progress(*columns, console=console, disable=off, auto_refresh=False)

@@ -28,10 +28,12 @@ import math
 import os
 import time
 import urllib.parse
+from fractions import Fraction
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, Literal
 
 import typer
+from rich.console import Console
 
 from evclock._errors import EvClockError, InvalidArgumentError, ParticipantLostError
 from evclock._extras import import_extra
@@ -201,7 +203,7 @@ def serve_scenario(
                     else "its controllers run in this process; other processes may follow "
                     "this sim time (`evclock control` needs --remote-controllers)"
                 )
-                progress.console.print(
+                Console().print(  # on stdout (the progress bar is on stderr)
                     f"serving {cls.name}'s sim time at {server.address}: {where}",
                     soft_wrap=True,
                     markup=False,
@@ -240,9 +242,12 @@ def serve_scenario(
             wall_time_s=wall_s,
             achieved_rtf=sim_s / wall_s if wall_s > 0 else None,
             summary=summary,
-            loops=_loops_from(handed["loops"]) if remote_controllers else _loop_reports(clk),
+            loops=_loops_from(handed["loops"], source.time_step_ns)
+            if remote_controllers
+            else _loop_reports(clk, source.time_step_ns),
             final_state=scenario.state_vector(),
             until_s=limit,
+            physics_step_s=source.time_step,
         )
         if remote_controllers:  # the controllers' error, as they handed it over
             report.error = handed.get("error")
@@ -288,10 +293,20 @@ def _checked_report(data: bytes) -> dict[str, Any]:
     return checked
 
 
-def _loops_from(data: list[dict[str, Any]]) -> list[Any]:
+def _loops_from(data: list[dict[str, Any]], step_ns: Fraction) -> list[Any]:
+    """The controllers' loop reports, each checked against this simulation's physics step."""
+    from evclock.kernel._rate import _period_fraction
     from evclock.tools._runs import LoopReport
 
-    return [LoopReport(d["name"], d["hz"], d["stats"]) for d in data]
+    return [
+        LoopReport(
+            d["name"],
+            d["hz"],
+            d["stats"],
+            (_period_fraction(d["hz"]) / step_ns).denominator == 1,
+        )
+        for d in data
+    ]
 
 
 def _joining(url: str, name: str, token: str | None) -> str:

@@ -41,6 +41,7 @@ from evclock.tools._cli_app import (
     check_writable,
     parse_params,
     print_error,
+    progress_console,
     with_exit_statuses,
 )
 from evclock.tools._scenarios import ParamValue, check_engine, load_scenario, require_engine
@@ -59,9 +60,10 @@ _WALL_FIELDS = ("wall_time_s", "achieved_rtf")
 
 
 class SweepProgress:
-    """The sweep's progress bar: runs done, failed, ETA, achieved aggregate rtf."""
+    """The sweep's progress bar: runs done, failed, ETA, achieved aggregate rtf (on
+    ``console``, by default stderr and only on a terminal: see ``progress_console``)."""
 
-    def __init__(self, console: Console, total: int, quiet: bool, done: int = 0) -> None:
+    def __init__(self, console: Console | None, total: int, quiet: bool, done: int = 0) -> None:
         columns = (
             TextColumn("[bold]sweep"),
             BarColumn(),
@@ -72,7 +74,9 @@ class SweepProgress:
             TextColumn("ETA"),
             TimeRemainingColumn(),
         )
-        self.progress = Progress(*columns, console=console, disable=quiet, auto_refresh=False)
+        # By default on stderr, and only on a terminal.
+        console, off = progress_console(console, quiet)
+        self.progress = Progress(*columns, console=console, disable=off, auto_refresh=False)
         self.task = self.progress.add_task("sweep", total=total, completed=done, failed=0, rtf="-")
         self.failed = 0
         self.sim_s = 0.0
@@ -442,7 +446,7 @@ def sweep_command(
         # Before anything runs: the engine, installed here unless a Ray cluster runs the runs.
         (require_engine if address is None else check_engine)(load_scenario(scenario), engine)
         done = 0 if directory is None else len(directory.finished(specs))
-        display = SweepProgress(console, len(specs), quiet, done=done)
+        display = SweepProgress(None, len(specs), quiet, done=done)
         with display.progress:
             result = sweep(
                 specs,

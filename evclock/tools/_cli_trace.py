@@ -7,7 +7,7 @@
 - ``trace diff A B``: the first divergence of two recorded runs; exits 0 when they agree on
   every deterministic channel, 1 when they diverge;
 - ``plot RUN.mcap -o RUN.png``: lateness per loop and achieved rtf over sim time;
-  ``plot RUN.mcap TOPIC.field ... -o F.png``: any numeric fields over time, one figure.
+  ``plot RUN.mcap TOPIC.field ... -o F.png``: any numeric fields over time, a panel each.
 
 A file that cannot be read (missing, truncated, corrupt, not a recording, a newer format)
 gives one ``error:`` line and exit status 2.
@@ -147,7 +147,8 @@ def plot_command(
     ] = None,
 ) -> None:
     """Plot a recorded run: each rate loop's tick lateness and the achieved rtf over sim
-    time, or the given numeric fields (several series, one figure)."""
+    time, or the given numeric fields (one figure, a panel per field: no units are
+    recorded, so no two fields share a y-axis)."""
     from evclock.tools._plot import figure_class, plot_fields, plot_run
 
     try:

@@ -2,8 +2,9 @@
 
 - :func:`plot_run`: each rate loop's tick lateness over sim time, and the achieved real-time
   factor over sim time (``evclock plot run.mcap -o run.png``);
-- :func:`plot_fields`: any numeric fields of a recording over time, one line each, in one
-  figure (``evclock plot run.mcap /evclock/joints.joints[elbow].position -o f.png``);
+- :func:`plot_fields`: any numeric fields of a recording over time, one panel each (a
+  recording has no units: no two fields share an axis), in one figure
+  (``evclock plot run.mcap /evclock/joints.joints[elbow].position -o f.png``);
 - :func:`plot_sweep`: the histogram of every numeric report field over a sweep's runs
   (``evclock sweep ... --plot sweep.png``).
 
@@ -79,9 +80,11 @@ def plot_run(trace: Trace, output: Path) -> None:
 
 
 def plot_fields(trace: Trace, series: list[str], output: Path) -> None:
-    """Each ``TOPIC.field`` of ``series`` over time, one line each (palette order), in one
-    figure with a legend, as a PNG. The x-axis is the recording's timeline (sim seconds, or
-    wall seconds for a ``--wall`` run).
+    """Each ``TOPIC.field`` of ``series`` over time, in one figure as a PNG: one panel per
+    field (palette order), all sharing the time axis. A recording does not carry its fields'
+    units, so no two fields share a y-axis: a joint angle near 0.6 rad stays readable beside
+    an rtf of 60. The x-axis is the recording's timeline (sim seconds, or wall seconds for a
+    ``--wall`` run).
 
     :param trace: a recording read with :func:`read_trace`.
     :param series: the fields, as ``TOPIC.field.path`` (see :func:`evclock.tools._trace.
@@ -93,15 +96,15 @@ def plot_fields(trace: Trace, series: list[str], output: Path) -> None:
     from evclock.tools._trace import series_values
 
     data = [(name, *series_values(trace, name)) for name in series]
-    figure = figure_class()(figsize=(10, 4.5), dpi=100)
-    ax = figure.subplots(1, 1)
-    for i, (name, times, values) in enumerate(data):
-        ax.plot(times, values, color=PALETTE[i % len(PALETTE)], linewidth=1.5, label=name)
-    ax.set_xlabel(f"{trace.timeline} time (s)")
-    ax.legend(fontsize=8, loc="best")
-    ax.grid(True, alpha=0.3)
+    figure = figure_class()(figsize=(10, 1.0 + 2.2 * len(data)), dpi=100)
+    axes = figure.subplots(len(data), 1, sharex=True, squeeze=False)[:, 0]
+    for i, (ax, (name, times, values)) in enumerate(zip(axes, data, strict=True)):
+        ax.plot(times, values, color=PALETTE[i % len(PALETTE)], linewidth=1.5)
+        ax.set_title(name, fontsize=9)
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel(f"{trace.timeline} time (s)")
     scenario = trace.metadata.get("evclock.run", {}).get("scenario")
-    ax.set_title(trace.path.name if scenario is None else f"{scenario}: {trace.path.name}")
+    figure.suptitle(trace.path.name if scenario is None else f"{scenario}: {trace.path.name}")
     figure.tight_layout()
     figure.savefig(output, format="png")
 

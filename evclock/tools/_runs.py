@@ -23,6 +23,7 @@ import tempfile
 import time
 import traceback
 from collections.abc import Callable, Iterator
+from fractions import Fraction
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,6 +34,7 @@ from evclock.hosts._loop import SimEventLoop
 from evclock.hosts._runner import run as evclock_run
 from evclock.kernel._clock import Clock
 from evclock.kernel._pacing import check_rtf
+from evclock.kernel._rate import _period_fraction
 from evclock.tools._scenarios import (
     ParamValue,
     configure,
@@ -58,11 +60,16 @@ class LoopReport:
     :ivar name: the loop's name.
     :ivar hz: its frequency, in hertz.
     :ivar stats: its :class:`~evclock.LoopStats` figures (ticks, misses, lateness...).
+    :ivar on_physics_steps: whether its deadlines fall on physics steps (None: unknown).
     """
 
     name: str
     hz: float
     stats: dict[str, float | int]
+    on_physics_steps: bool | None = None
+    """Whether every deadline of the loop falls on a physics step (its period is a whole
+    number of steps); when not, a tick runs at the first step at or after its deadline, up
+    to one step late by quantisation alone. None where no physics step is known (wall time)."""
 
 
 @dataclasses.dataclass
@@ -94,6 +101,7 @@ class RunReport:
     :ivar traceback: the exception's full traceback, or None.
     :ivar interrupted: whether the run was stopped by Ctrl-C (the report is partial).
     :ivar engine: the physics engine that ran the world (``pybullet`` or ``mujoco``).
+    :ivar physics_step_s: the physics time step in seconds, or None (wall time).
     """
 
     scenario: str
@@ -125,6 +133,8 @@ class RunReport:
     """Whether the run was stopped by Ctrl-C before it ended (the figures are partial)."""
     engine: str = "pybullet"
     """The physics engine that ran the world: ``pybullet`` or ``mujoco``."""
+    physics_step_s: float | None = None
+    """The physics time step in seconds (None on wall time): the quantum sim time moves by."""
 
     @property
     def verdict(self) -> str:
@@ -273,8 +283,18 @@ def import_pybullet_quietly() -> None:
         import pybullet  # noqa: F401
 
 
-def _loop_reports(clk: Clock) -> list[LoopReport]:
-    return [LoopReport(rate.name, float(rate.hz), rate.stats.as_dict()) for rate in clk.rates]
+def _loop_reports(clk: Clock, step_ns: Fraction | None = None) -> list[LoopReport]:
+    """A report per rate loop of ``clk``; with the physics step ``step_ns``, whether each
+    loop's deadlines fall on physics steps (its exact period a whole number of steps)."""
+    return [
+        LoopReport(
+            rate.name,
+            float(rate.hz),
+            rate.stats.as_dict(),
+            None if step_ns is None else (_period_fraction(rate.hz) / step_ns).denominator == 1,
+        )
+        for rate in clk.rates
+    ]
 
 
 def scenario_class(scenario: str | type[Any], params: dict[str, ParamValue]) -> type[Any]:
@@ -544,11 +564,12 @@ def _run_on_sim_time(
                 wall_time_s=wall_s,
                 achieved_rtf=achieved,
                 summary=scenario.summary(),
-                loops=_loop_reports(clk),
+                loops=_loop_reports(clk, source.time_step_ns),
                 final_state=scenario.state_vector(),
                 stamps=diagnostics_report(),
                 until_s=limit,
                 setup_output=output,
+                physics_step_s=source.time_step,
             )
         )
 

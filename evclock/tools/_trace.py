@@ -303,6 +303,44 @@ def field_value(data: Any, parts: list[str | int]) -> Any:
     return value
 
 
+def missing_field(data: Any, parts: list[str | int]) -> str:
+    """Why decoded message ``data`` has no field at ``parts``: where the path stops, and what
+    exists there (the fields of an object, the items of a list).
+
+    :param data: a decoded message.
+    :param parts: the path's parts (see :func:`parse_field_path`).
+    :returns: a clause for an error message.
+    """
+    value = data
+    where = "the message"
+    walked = ""
+    for part in parts:
+        if isinstance(value, list):
+            names = [x["name"] for x in value if isinstance(x, dict) and "name" in x]
+            if isinstance(part, int):
+                if -len(value) <= part < len(value):
+                    value, walked = value[part], f"{walked}[{part}]"
+                    where = walked
+                    continue
+                return f"{where} has {len(value)} items ([0] to [{len(value) - 1}]), no [{part}]"
+            named = [x for x in value if isinstance(x, dict) and x.get("name") == part]
+            if named:
+                value, walked = named[0], f"{walked}[{part}]"
+                where = walked
+                continue
+            items = ", ".join(f"[{name}]" for name in names) or f"[0] to [{len(value) - 1}]"
+            return f"{where} has no item [{part}]; its items: {items}"
+        if isinstance(value, dict) and str(part) in value:
+            value = value[str(part)]
+            walked = f"{walked}.{part}" if walked else str(part)
+            where = walked
+            continue
+        if isinstance(value, dict):
+            return f"{where} has no field {part!r}; its fields: {', '.join(value) or 'none'}"
+        return f"{where} is {_short(value, 60)}, which has no field {part!r}"
+    return f"{where} exists"  # (not reached for a path field_value did not find)
+
+
 def has_value(value: Any) -> bool:
     """Whether :func:`field_value` found a field.
 
@@ -369,10 +407,9 @@ def series_values(trace: Trace, series: str) -> tuple[list[float], list[float]]:
         times.append(message.time_ns / 1e9)
         values.append(float(value))
     if not times:
-        raise TraceError(
-            f"no message of {topic} has the field {path!r} (its fields: "
-            f"{', '.join(_fields(trace, topic)) or 'none'})"
-        )
+        messages = trace.topic(topic)
+        why = missing_field(messages[0].data, parts) if messages else "it has no message"
+        raise TraceError(f"no message of {topic} has the field {path!r}: {why}")
     return times, values
 
 
@@ -408,7 +445,8 @@ def echo_lines(
     :param start_s: the first time to show (seconds), or None.
     :param end_s: the last time to show (seconds), or None.
     :returns: the lines, lazily.
-    :raises TraceError: ``topic`` is not recorded, or ``field`` is malformed.
+    :raises TraceError: ``topic`` is not recorded, or ``field`` is malformed or in none of
+        its messages (the message says what exists where the path stops).
     """
     if topic not in trace.topics:
         raise TraceError(
@@ -416,7 +454,17 @@ def echo_lines(
             f"{', '.join(trace.topics) or 'none'}"
         )
     parts = parse_field_path(field) if field is not None else None
-    for message in trace.topic(topic):
+    messages = trace.topic(topic)
+    if (
+        parts is not None
+        and messages
+        and not any(has_value(field_value(m.data, parts)) for m in messages)
+    ):
+        raise TraceError(
+            f"no message of {topic} has the field {field!r}: "
+            f"{missing_field(messages[0].data, parts)}"
+        )
+    for message in messages:
         seconds = message.time_ns / 1e9
         if (start_s is not None and seconds < start_s) or (end_s is not None and seconds > end_s):
             continue
