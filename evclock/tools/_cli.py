@@ -70,7 +70,7 @@ def list_scenarios(
     ] = False,
 ) -> None:
     """List the registered scenarios (entry-point group evclock.scenarios), the engines
-    each runs on and which of those are installed here.
+    each runs on and whether it runs here (yes, on the installed engine, or no).
 
     A scenario none of whose engines is installed, or whose extra is not,
     is listed with what it needs, and a note on stderr gives the command that
@@ -79,12 +79,12 @@ def list_scenarios(
     the others are listed.
     """
     table = Table(title="scenarios")
-    table.add_column("name")
+    table.add_column("name", no_wrap=True)
     table.add_column("sim seconds", justify="right")
-    table.add_column("engines")
-    table.add_column("installed")
-    table.add_column("description")
-    table.add_column("from")
+    table.add_column("engines", min_width=8)
+    table.add_column("runs here", no_wrap=True)
+    table.add_column("description", min_width=12)
+    table.add_column("from", no_wrap=True)
     try:
         entries = registered_scenarios()
     except EvClockError as exc:
@@ -126,7 +126,7 @@ def list_scenarios(
                 escape(entry.name),
                 f"{cls.default_until:g}",
                 escape(", ".join(engines)),
-                escape(", ".join(here) or "none"),
+                _runs_here(engines, here),
                 escape(str(cls.description)),
                 escape(entry.distribution),
             )
@@ -147,6 +147,14 @@ def list_scenarios(
         stderr.print(f"[red]error:[/red] {escape(message)}", soft_wrap=True)
     if broken:
         raise typer.Exit(EXIT_USAGE)
+
+
+def _runs_here(engines: tuple[str, ...], installed: list[str]) -> str:
+    """``yes`` (every engine of the scenario is installed), ``no`` (none is) or ``on ENGINE``
+    (the installed ones only)."""
+    if len(installed) == len(engines):
+        return "yes"
+    return f"on {', '.join(installed)}" if installed else "no"
 
 
 def _no_engine_note(engines: tuple[str, ...]) -> str:

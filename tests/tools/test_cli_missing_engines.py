@@ -120,16 +120,16 @@ def test_list_without_any_engine_says_which_engines_each_scenario_needs() -> Non
         "name",
         "sim seconds",
         "engines",
-        "installed",
+        "runs here",
         "description",
         "from",
     ]
     rows = table_rows(result.stdout)
     assert {name: row[1:3] for name, row in rows.items()} == {
-        "cartpole": ["pybullet, mujoco", "none"],
-        "fusion": ["pybullet", "none"],
-        "husky": ["pybullet", "none"],
-        "kuka": ["pybullet, mujoco", "none"],
+        "cartpole": ["pybullet, mujoco", "no"],
+        "fusion": ["pybullet", "no"],
+        "husky": ["pybullet", "no"],
+        "kuka": ["pybullet, mujoco", "no"],
     }
     assert one_line(result.stderr) == (
         "note: cartpole, kuka cannot run here: neither PyBullet nor MuJoCo is installed: pip "
@@ -139,13 +139,13 @@ def test_list_without_any_engine_says_which_engines_each_scenario_needs() -> Non
     )
 
 
-def test_list_without_pybullet_shows_mujoco_installed() -> None:
+def test_list_without_pybullet_says_what_runs_on_mujoco() -> None:
     result = evclock(CLI_WITHOUT_PYBULLET, "list")
     assert result.returncode == 0, result.stderr
     rows = table_rows(result.stdout)
-    assert rows["kuka"][2] == "mujoco"
-    assert rows["cartpole"][2] == "mujoco"
-    assert rows["husky"][2] == "none"
+    assert rows["kuka"][2] == "on mujoco"
+    assert rows["cartpole"][2] == "on mujoco"
+    assert rows["husky"][2] == "no"
     assert one_line(result.stderr).startswith("note: fusion, husky cannot run here:")
 
 

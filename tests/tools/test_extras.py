@@ -216,14 +216,14 @@ def test_evclock_list_without_pybullet_lists_every_scenario_and_names_the_extra(
     # What can be loaded is listed in full, with its engines and those installed; the others
     # with what they need.
     assert rows["light"] == (
-        "│ light │ 1.5 │ pybullet │ none │ no physics [a test scenario] │ evclock-test-scenarios │"
+        "│ light │ 1.5 │ pybullet │ no │ no physics [a test scenario] │ evclock-test-scenarios │"
     )
     for name in ("fusion", "husky"):  # they load without PyBullet: their engine is named
         assert rows[name].startswith(f"│ {name} │ ")
-        assert "│ pybullet │ none │" in rows[name]
+        assert "│ pybullet │ no │" in rows[name]
     for name in ("cartpole", "kuka"):  # they run on MuJoCo too
         assert rows[name].startswith(f"│ {name} │ ")
-        assert "│ pybullet, mujoco │ mujoco │" in rows[name]
+        assert "│ pybullet, mujoco │ on mujoco │" in rows[name]
     assert rows["reach"] == (
         "│ reach │ - │ - │ - │ (needs evclock[pybullet]) │ evclock-test-scenarios │"
     )
@@ -252,11 +252,11 @@ def test_evclock_list_reports_a_broken_registration_and_lists_the_others(
     assert "Traceback" not in result.stderr
     stdout = one_line(result.stdout)
     assert (
-        "│ light │ 1.5 │ pybullet │ none │ no physics [a test scenario] │ evclock-test-scenarios │"
+        "│ light │ 1.5 │ pybullet │ no │ no physics [a test scenario] │ evclock-test-scenarios │"
         in stdout
     )
     assert "│ gone │ - │ - │ - │ (broken: see the error below) │ evclock-test-scenarios │" in stdout
-    assert "│ husky │ 20 │ pybullet │ none │ Husky following" in stdout
+    assert "│ husky │ 20 │ pybullet │ no │ Husky following" in stdout
     errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
     assert errors == [
         "error: scenario 'gone' (no_such_scenario_module:Gone) cannot be loaded: cannot import "
