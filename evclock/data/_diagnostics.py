@@ -331,16 +331,17 @@ def diagnostics_report(loop: asyncio.AbstractEventLoop | None = None) -> list[di
 
 def render_diagnostics_report(reports: list[dict[str, Any]], console: Any) -> None:
     """Print stamp diagnostics as ``rich`` tables (used by ``evclock run``); nothing if none."""
+    from rich.markup import escape  # names and warnings are text, never markup
     from rich.table import Table
 
     for report in reports:
-        table = Table(title=f"{report['name']}: stamp ages")
+        table = Table(title=escape(f"{report['name']}: stamp ages"))
         for column in ("stream", "msgs", "mean age ms", "p99 age ms", "max age ms", "stale"):
             table.add_column(column, justify="left" if column == "stream" else "right")
         table.add_column("future", justify="right")
         for stream, s in report["streams"].items():
             table.add_row(
-                stream,
+                escape(stream),
                 str(s["messages"]),
                 _ms(s["mean_age_s"]),
                 _ms(s["p99_age_s"]),
@@ -350,14 +351,16 @@ def render_diagnostics_report(reports: list[dict[str, Any]], console: Any) -> No
             )
         console.print(table)
         if report["queues"]:
-            queues = Table(title=f"{report['name']}: consumer queues")
+            queues = Table(title=escape(f"{report['name']}: consumer queues"))
             for column in ("consumer", "depth", "max depth", "above max_queue"):
                 queues.add_column(column, justify="left" if column == "consumer" else "right")
             for consumer, q in report["queues"].items():
-                queues.add_row(consumer, str(q["depth"]), str(q["max_depth"]), str(q["behind"]))
+                queues.add_row(
+                    escape(consumer), str(q["depth"]), str(q["max_depth"]), str(q["behind"])
+                )
             console.print(queues)
         for line in report["warnings"]:
-            console.print(f"[yellow]warning[/yellow] {line}")
+            console.print(f"[yellow]warning[/yellow] {escape(line)}")
 
 
 def _ms(seconds: float) -> str:

@@ -224,3 +224,30 @@ def test_plot_gives_each_field_its_own_axis(
     assert bands == sorted(bands)
     for (_, bottom), (top, _) in itertools.pairwise(bands):
         assert bottom < top  # the panels do not overlap: no two fields share an axis
+
+
+def test_stamp_diagnostics_keep_the_brackets_of_their_names() -> None:
+    import io
+
+    from rich.console import Console
+
+    from evclock.data._diagnostics import render_diagnostics_report
+
+    console = Console(file=io.StringIO(), width=200)
+    ages = {"mean_age_s": 0.001, "p99_age_s": 0.002, "max_age_s": 0.003}
+    report = {
+        "name": "camera[left]",
+        "streams": {"image[0]": {"messages": 3, "stale": 0, "future": 0, **ages}},
+        "queues": {"fuser[b]": {"depth": 1, "max_depth": 2, "behind": 0}},
+        "warnings": ["install it: pip install 'evclock[record]'"],
+    }
+    render_diagnostics_report([report], console)
+    text = console.file.getvalue()  # type: ignore[attr-defined]
+    for shown in (
+        "camera[left]: stamp ages",
+        "image[0]",
+        "camera[left]: consumer queues",
+        "fuser[b]",
+        "warning install it: pip install 'evclock[record]'",
+    ):
+        assert shown in text, shown
