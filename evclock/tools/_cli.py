@@ -161,9 +161,9 @@ def _no_engine_note(engines: tuple[str, ...]) -> str:
     """Why a scenario running on ``engines``, none of them installed, cannot run, and how to
     install one."""
     labels = " nor ".join(ENGINE_LABELS.get(engine, engine) for engine in engines)
-    hints = " or ".join(
-        f"pip install 'evclock[{engine}]'" for engine in sorted(engines, key="mujoco".__ne__)
-    )
+    # MuJoCo first: it has wheels on every supported Python, PyBullet on 3.11 only.
+    ordered = [*(e for e in engines if e == "mujoco"), *(e for e in engines if e != "mujoco")]
+    hints = " or ".join(f"pip install 'evclock[{engine}]'" for engine in ordered)
     status = f"neither {labels} is installed" if len(engines) > 1 else f"{labels} is not installed"
     note = f"{status}: {hints}"
     return f"{note} ({PYBULLET_WHEELS})" if "pybullet" in engines else note
