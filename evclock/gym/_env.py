@@ -28,7 +28,7 @@ from evclock._extras import import_extra
 from evclock.gym._protocol import check_action, check_protocol, check_rate
 from evclock.hosts._loop import SimEventLoop
 from evclock.tools._runs import install_step_hooks, root_exception, scenario_class
-from evclock.tools._scenarios import ParamValue, check_engine, open_world
+from evclock.tools._scenarios import ParamValue, open_world, require_engine
 
 import_extra("gymnasium", "gym", needed_by="evclock.gym")  # the extra's error, if missing
 
@@ -69,6 +69,7 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
     :raises AgentProtocolError: the scenario lacks the agent protocol, or ``controller`` is
         not the one it lets an agent replace.
     :raises InvalidArgumentError: an unknown engine or parameter, a bad time limit.
+    :raises MissingExtraError: the engine is not installed (the message names its extra).
     """
 
     metadata = {"render_modes": []}  # noqa: RUF012  (Gymnasium's own attribute)
@@ -93,7 +94,7 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         self.render_mode = None
         self._params = dict(params or {})
         self._cls = scenario_class(scenario, self._params)
-        check_engine(self._cls, engine)
+        require_engine(self._cls, engine)  # the engine is installed, or the extra is named
         self.controller = check_protocol(self._cls, controller)
         """The label of the controller the agent replaces."""
         self.engine = engine
