@@ -279,6 +279,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # asyncio's per-iteration select would have, so running those callbacks needs no
         # other zero-timeout poll first (a move of time always polls: before_moving).
         self._io_fresh = False
+        # A callback came from another thread (call_soon_threadsafe) since the last advance.
+        self._woken_from_outside = False
         # EXTERNAL-SOURCE HOOK: whether the source is external (it may name its fd:
         # TimeSource.io_fd).
         self._source_external = source.external
@@ -322,6 +324,17 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         return clock
 
     # ------------------------------------------------------------ scheduling
+
+    def call_soon_threadsafe(
+        self,
+        callback: Callable[[Unpack[_Ts]], object],
+        *args: *_Ts,
+        context: contextvars.Context | None = None,
+    ) -> asyncio.Handle:
+        """asyncio's, and the loop polls its I/O before the callback runs (see _run_once)."""
+        handle = super().call_soon_threadsafe(callback, *args, context=context)
+        self._woken_from_outside = True  # after it is queued: at worst one poll too many
+        return handle
 
     def call_later(
         self,
@@ -492,6 +505,19 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                     if wake_next(ready):
                         continue
                 self._advance()
+                if self._woken_from_outside:
+                    self._woken_from_outside = False
+                    if (
+                        ready
+                        and not self._io_fresh
+                        and len(io_map) > self._quiet_fds
+                        and not (self._source_external and self._source_alone())
+                    ):
+                        # Callbacks another thread queued while time moved come after a
+                        # poll too: when before_moving skips its poll (I/O whose owners
+                        # account for it) that is the poll the owners rely on - while physics
+                        # runs flat out, a clock server reads and writes in its keepalives'.
+                        self._poll_io(0)
             # Entries due now are taken before anything runs, so whatever the callbacks
             # below schedule for the same instant waits for the next iteration, as in asyncio.
             due = core.take_due()

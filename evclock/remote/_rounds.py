@@ -198,6 +198,9 @@ class Rounds(ServerCore):
     def _send_time(self, peer: Peer, now: int) -> None:
         if peer.out:
             peer.stale_time = True  # it is behind: it gets the newest time once it reads
+            # Its backlog goes now if its socket takes it (it read since): while physics
+            # runs flat out nothing else may poll the socket for a while.
+            self._on_writable(peer)
         else:
             self._send(peer, proto.time_frame(now))
 
