@@ -12,7 +12,8 @@ clock="unix://...")`` and follows it or runs in lockstep with it.
   assembled from one part per trust boundary over :mod:`._core` (the shared state and
   sending): :mod:`._admission` (connecting, the handshake, joining), :mod:`._rounds` (holds,
   deadlines, jumps, followers' time), :mod:`._routing` (publications and subscriptions) and
-  :mod:`._services` (calls); :mod:`._peer` is one connection;
+  :mod:`._services` (calls); :mod:`._peer` is one connection, :mod:`._limits` what one
+  participant may make the server hold;
 * :mod:`._participant` is the time source of a process that joins (``clock="unix://..."``);
 * :mod:`._physics` lets scenario controllers call PyBullet in the simulation process.
 * :mod:`._mujoco_physics` lets them read and write MuJoCo's ``MjData`` there.
@@ -31,6 +32,7 @@ from evclock._errors import (
     RemoteClockError,
     WeakTokenError,
 )
+from evclock.remote._limits import Limits
 from evclock.remote._participant import RemoteClockSource, participant
 from evclock.remote._server import ClockServer, Message, serve
 
@@ -38,6 +40,7 @@ __all__ = [
     "ClockLostError",
     "ClockServer",
     "JoinRefusedError",
+    "Limits",
     "Message",
     "ParticipantLostError",
     "ProtocolError",

@@ -24,19 +24,17 @@ from __future__ import annotations
 import asyncio
 import socket
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Final
+from typing import TYPE_CHECKING, Any
 
 from evclock._errors import EvClockError
 from evclock.hosts._loop import SimEventLoop
 from evclock.remote import _protocol as proto
 from evclock.remote._address import Address
+from evclock.remote._limits import Limits, exceeded
 from evclock.remote._peer import Peer
 
 if TYPE_CHECKING:
     from evclock.remote._routing import Message
-
-#: A peer whose unsent backlog grows past this many bytes is not reading: a fault.
-MAX_BACKLOG: Final = 64 * 1024 * 1024
 
 
 class ServerCore:
@@ -54,6 +52,7 @@ class ServerCore:
         info: bytes,
         max_frame: int,
         peer_uids: tuple[int, ...],
+        limits: Limits,
     ) -> None:
         self._loop = loop
         # Its kernel (SimClock.core): sim time read as a plain attribute on every round.
@@ -64,6 +63,7 @@ class ServerCore:
         self._info = info
         self._max_frame = max_frame
         self._peer_uids = peer_uids
+        self._limits = limits
         self._listener = listener
         self._address = address
         self._pending: list[Peer] = []  # connected, HELLO not yet accepted
@@ -127,8 +127,12 @@ class ServerCore:
     def _send(self, peer: Peer, frame: bytes) -> None:
         if peer.out:
             peer.out += frame
-            if len(peer.out) > MAX_BACKLOG:
-                self._lost(peer, f"does not read its connection ({len(peer.out)} bytes unsent)")
+            if len(peer.out) > self._limits.unsent_bytes:
+                self._lost(
+                    peer,
+                    "does not read its connection: "
+                    + exceeded(self._limits, "unsent_bytes", f"{len(peer.out)} bytes unsent"),
+                )
             return
         try:
             sent = peer.sock.send(frame)

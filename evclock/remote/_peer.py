@@ -30,6 +30,7 @@ class Peer:
         "name",
         "out",
         "outbox",
+        "outbox_bytes",
         "pid",
         "reader",
         "server_nonce",
@@ -58,6 +59,7 @@ class Peer:
         self.working_since: float | None = None
         self.deadline: int | None = None  # sim ns it asked to be granted (told) at
         self.outbox: list[tuple[int, str, bytes]] = []
+        self.outbox_bytes = 0  # the data bytes in outbox (Limits.round_bytes)
         self.subscriptions: set[str] = set()  # membership tests only, never iterated
         self.lost = False
         self.silent_reported = False

@@ -16,6 +16,7 @@ from evclock._errors import InvalidTypeError, ProtocolError
 from evclock.remote import _protocol as proto
 from evclock.remote._checks import shown
 from evclock.remote._core import ServerCore
+from evclock.remote._limits import exceeded
 from evclock.remote._peer import Peer
 from evclock.time._time import SIM, Time, new_time
 
@@ -74,6 +75,21 @@ class Routing(ServerCore):
                 raise ProtocolError("PUBLISH from a lockstep participant that is not working")
             # Sent before it read a JUMP: delivered with the round, stamped as sent.
             stamp = peer.working_at if peer.jump_acked == peer.jump_sent else sent_at
+            limits = self._limits
+            if len(peer.outbox) >= limits.round_frames:
+                self._lost(
+                    peer,
+                    exceeded(limits, "round_frames", "published more often in one round"),
+                )
+                return
+            held = peer.outbox_bytes + len(data)
+            if held > limits.round_bytes:
+                self._lost(
+                    peer,
+                    exceeded(limits, "round_bytes", f"published {held} bytes in one round"),
+                )
+                return
+            peer.outbox_bytes = held
             peer.outbox.append((stamp, topic, data))
             self._round_has_data = True
         elif self._working:
@@ -85,7 +101,22 @@ class Routing(ServerCore):
             self._grant_all(regrant)
 
     def _on_subscribe(self, peer: Peer, payload: bytes) -> None:
-        peer.subscriptions.add(proto.parse_subscribe(payload))
+        topic = proto.parse_subscribe(payload)
+        limits = self._limits
+        length = len(topic.encode())
+        if length > limits.topic_length:
+            self._lost(
+                peer,
+                exceeded(limits, "topic_length", f"subscribed to a topic of {length} bytes"),
+            )
+        elif topic not in peer.subscriptions:
+            if len(peer.subscriptions) >= limits.subscriptions:
+                self._lost(
+                    peer,
+                    exceeded(limits, "subscriptions", "subscribed to one topic more"),
+                )
+                return
+            peer.subscriptions.add(topic)
 
     def _close_round(self) -> None:
         """Deliver the round's data in a fixed order, still at this time."""
@@ -103,6 +134,7 @@ class Routing(ServerCore):
             batch = [(peer.name, *entry) for peer in senders for entry in peer.outbox]
             for peer in senders:
                 peer.outbox = []
+                peer.outbox_bytes = 0
             batch += self._outbox
             self._outbox = []
             if not batch:

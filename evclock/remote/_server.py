@@ -36,6 +36,7 @@ from evclock.remote import _protocol as proto
 from evclock.remote._address import bound_address, listen, parse_address, private_dir
 from evclock.remote._admission import Admission
 from evclock.remote._checks import one_line, shown
+from evclock.remote._limits import Limits
 from evclock.remote._peer import Peer
 from evclock.remote._rounds import Rounds
 from evclock.remote._routing import Message, Routing
@@ -83,12 +84,14 @@ class ClockServer(Admission, Rounds, Routing, Services):
     :param allow_remote: allow listening on a non-loopback address (which needs a token).
     :param max_frame: the largest frame (bytes) a joined participant may send.
     :param peer_uids: user ids allowed to join over a Unix socket (default: this user's).
+    :param limits: what one participant may make the server hold (default: ``Limits()``).
     :raises InvalidArgumentError: an unknown ``on_fault``, a bad ``step_timeout`` or
         ``max_frame``, an invalid or unusable address, a TCP address without a token, a
         non-loopback address without ``allow_remote``, or ``info`` that is not
         JSON-serialisable.
     :raises InvalidTypeError: ``token`` is not a non-empty string, ``address`` is not a
-        string, or ``peer_uids`` holds something other than integers.
+        string, ``peer_uids`` holds something other than integers, or ``limits`` is not a
+        :class:`~evclock.remote.Limits`.
     :raises WeakTokenError: ``token`` is below 128 bits (fewer than 22 URL-safe characters).
     """
 
@@ -104,6 +107,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
         allow_remote: bool = False,
         max_frame: int = proto.MAX_FRAME,
         peer_uids: Iterable[int] | None = None,
+        limits: Limits | None = None,
     ) -> None:
         if (
             isinstance(max_frame, bool)
@@ -113,6 +117,10 @@ class ClockServer(Admission, Rounds, Routing, Services):
             raise InvalidArgumentError(
                 f"max_frame must be a number of bytes from {proto.MIN_FRAME_LIMIT} to "
                 f"{proto.MAX_FRAME_LIMIT}, got {max_frame!r}"
+            )
+        if limits is not None and not isinstance(limits, Limits):
+            raise InvalidTypeError(
+                f"limits must be an evclock.remote.Limits, got {type(limits).__name__}"
             )
         uids = (os.getuid(),) if peer_uids is None else tuple(peer_uids)
         if not all(isinstance(u, int) and not isinstance(u, bool) for u in uids):
@@ -157,6 +165,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
             info=info_bytes,
             max_frame=max_frame,
             peer_uids=uids,
+            limits=Limits() if limits is None else limits,
         )
         # Every jump, either way, reaches the participants (their clocks jump alike).
         self._jump_handle = loop.clock.on_jump(
@@ -387,6 +396,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
             peer.lost = True
             self._disconnect(peer)
             peer.outbox = []
+            peer.outbox_bytes = 0
             if peer.working_at is None:  # it must hold the simulation until replaced
                 self._start_work(peer, self._kernel.now_ns)
         elif not peer.silent_reported:
@@ -409,6 +419,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
             self._remove_step_hook()
         if not clean:
             peer.outbox = []
+            peer.outbox_bytes = 0
         if peer.working_at is not None:
             self._stop_work(peer)
         self._wake_waiters()
@@ -505,6 +516,7 @@ async def serve(
     allow_remote: bool = False,
     max_frame: int = proto.MAX_FRAME,
     peer_uids: Iterable[int] | None = None,
+    limits: Limits | None = None,
 ) -> AsyncIterator[ClockServer]:
     """Serve the running :class:`~evclock.SimEventLoop`'s sim time while the block runs::
 
@@ -534,6 +546,9 @@ async def serve(
         16 MiB; 4 KiB to 256 MiB); before the handshake completes the limit is 4 KiB.
     :param peer_uids: user ids that may join over a Unix socket (``SO_PEERCRED``; default:
         only the user running the simulation).
+    :param limits: what one participant may make the server hold: its round's publications,
+        subscriptions and unsent output (default: :class:`~evclock.remote.Limits` ``()``, its
+        documented defaults); a participant beyond one is a fault under ``on_fault``.
     :returns: an async context manager yielding the :class:`ClockServer`.
     :raises InvalidTypeError: the running loop is not a :class:`~evclock.SimEventLoop`.
     :raises InvalidArgumentError: an invalid option or address (see :class:`ClockServer`).
@@ -555,6 +570,7 @@ async def serve(
         allow_remote=allow_remote,
         max_frame=max_frame,
         peer_uids=peer_uids,
+        limits=limits,
     )
     owner = server._owner = asyncio.current_task()
     try:
