@@ -1,8 +1,10 @@
 """Admission: who may connect, and who may join - everything before authentication.
 
 A new connection is *pending* until its handshake completes: it is read with the
-pre-authentication frame limit (``proto.PRE_AUTH_MAX_FRAME``), at most ``MAX_PENDING``
-connections are pending at once, and each has ``HELLO_TIMEOUT`` wall seconds to finish. On a
+pre-authentication frame limit (``proto.PRE_AUTH_MAX_FRAME``), it has ``PRE_HELLO_TIMEOUT``
+wall seconds to send its HELLO and ``HELLO_TIMEOUT`` to finish, and at most ``MAX_PENDING``
+connections are pending at once: a new one then evicts the oldest pending one (told busy, it
+retries), so that connections that never finish cannot keep an honest participant out. On a
 Unix socket the peer's user id (``SO_PEERCRED``) must be one the server admits. The handshake
 is HELLO -> CHALLENGE (the server's proof first) -> PROOF -> WELCOME or REFUSE; a
 participant that passed it joins (``_on_hello``) and is read with the documented frame
@@ -15,7 +17,8 @@ import contextlib
 import hmac
 import logging
 import socket
-from typing import Final
+import time
+from typing import Any, Final
 
 from evclock._errors import ProtocolError
 from evclock.remote import _protocol as proto
@@ -28,12 +31,59 @@ log = logging.getLogger("evclock.remote")
 
 #: Wall seconds a new connection has to complete its handshake (HELLO and PROOF).
 HELLO_TIMEOUT: Final = 5.0
-#: Connections in their handshake at once; more are refused as busy (the participant retries).
+#: Wall seconds a new connection has to send its HELLO (an honest one sends it at once).
+PRE_HELLO_TIMEOUT: Final = 1.0
+#: Connections in their handshake at once; a new one beyond evicts the oldest (told busy: the
+#: participant retries).
 MAX_PENDING: Final = 64
+#: Wall seconds between two log lines about refused connections (a flood logs a count).
+REFUSALS_LOGGED_EVERY: Final = 1.0
+
+
+class RefusalLog:
+    """Logs refused and evicted connections at most once every ``REFUSALS_LOGGED_EVERY``
+    wall seconds; a line says how many were not logged since the previous one."""
+
+    __slots__ = ("_next", "_unlogged")
+
+    def __init__(self) -> None:
+        self._next = 0.0
+        self._unlogged = 0
+
+    def refused(self, what: str, *args: object) -> None:
+        """Log ``what % args`` now, or count it for the next line."""
+        now = time.monotonic()
+        if now < self._next:
+            self._unlogged += 1
+            return
+        self._next = now + REFUSALS_LOGGED_EVERY
+        if self._unlogged:
+            log.warning(
+                "clock server: " + what + " (and %d more connections refused or evicted "
+                "since the previous line)",
+                *args,
+                self._unlogged,
+            )
+            self._unlogged = 0
+        else:
+            log.warning("clock server: " + what, *args)
+
+    def flush(self) -> None:
+        """Log the count of what was not logged yet (the server stops)."""
+        if self._unlogged:
+            log.warning(
+                "clock server: %d more connections refused or evicted since the previous line",
+                self._unlogged,
+            )
+            self._unlogged = 0
 
 
 class Admission(ServerCore):
     """The clock server's accepting, handshake and joining of participants."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self._refusals = RefusalLog()
 
     def _on_accept(self) -> None:
         for _ in range(16):
@@ -42,7 +92,7 @@ class Admission(ServerCore):
             except (BlockingIOError, InterruptedError):
                 return
             except OSError as exc:  # e.g. out of file descriptors: keep serving the others
-                log.warning("clock server: accept failed: %s", exc)
+                self._refusals.refused("accept failed: %s", exc)
                 return
             sock.setblocking(False)
             if sock.family != socket.AF_UNIX:
@@ -65,11 +115,11 @@ class Admission(ServerCore):
                     continue
             if len(self._pending) >= MAX_PENDING:
                 self._refuse(
-                    peer,
-                    f"busy: {MAX_PENDING} connections are in their handshake; try again",
+                    self._pending[0],
+                    f"evicted: {MAX_PENDING} connections were in their handshake and this was "
+                    "the oldest; try again",
                     proto.REFUSE_BUSY,
                 )
-                continue
             self._pending.append(peer)
             self._loop.add_reader(sock, self._on_readable, peer)
             # The server holds sim time exactly while a peer's traffic matters (a working
@@ -161,7 +211,7 @@ class Admission(ServerCore):
     def _refuse(self, peer: Peer, reason: str, code: int = proto.REFUSE_FINAL) -> None:
         pid = "" if peer.pid is None else f" (pid {peer.pid})"
         reason = one_line(reason)
-        log.warning("clock server: refused a connection%s: %s", pid, reason)
+        self._refusals.refused("refused a connection%s: %s", pid, reason)
         with contextlib.suppress(OSError):
             peer.sock.send(proto.refuse(reason, code))
         if peer in self._pending:
@@ -170,9 +220,20 @@ class Admission(ServerCore):
 
     def _handshake_late(self, now: float) -> bool:
         """Whether a pending connection ran out of time (read by the watchdog's thread)."""
-        return any(now - p.accepted_at > HELLO_TIMEOUT for p in list(self._pending))
+        return any(_late(p, now) for p in list(self._pending))
 
     def _expire_handshakes(self, now: float) -> None:
         for peer in list(self._pending):
-            if now - peer.accepted_at > HELLO_TIMEOUT:
-                self._refuse(peer, f"no complete handshake within {HELLO_TIMEOUT:g} s")
+            late = _late(peer, now)
+            if late:
+                self._refuse(peer, late)
+
+
+def _late(peer: Peer, now: float) -> str:
+    """Why ``peer``, pending, ran out of time ("" if it did not)."""
+    waited = now - peer.accepted_at
+    if waited > HELLO_TIMEOUT:
+        return f"no complete handshake within {HELLO_TIMEOUT:g} s"
+    if not peer.greeted and waited > PRE_HELLO_TIMEOUT:
+        return f"no HELLO within {PRE_HELLO_TIMEOUT:g} s"
+    return ""

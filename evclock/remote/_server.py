@@ -257,6 +257,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
             return
         self._closed = True
         self._stop_watch.set()
+        self._refusals.flush()
         frame = proto.closing(f"the clock server at {self._address} stopped: {reason}")
         for peer in [*self._peers, *self._pending]:
             with contextlib.suppress(OSError):

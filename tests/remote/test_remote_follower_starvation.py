@@ -56,7 +56,7 @@ def test_a_flat_out_follower_is_never_starved(tmp_path: Path) -> None:
     async def main() -> int:
         async with evclock.remote.serve(url) as server:
             for _ in range(RUNS):
-                await server.wait_for_participants("watcher")
+                await server.wait_for_participants("watcher", timeout=20)
                 await server.wait_until_left("watcher")  # physics runs flat out meanwhile
         return evclock.clock().now().nanoseconds
 
