@@ -80,6 +80,24 @@ def sleep0_fanout(rows: Rows) -> None:
     asyncio.run(main())
 
 
+def sleep0_fanout_uvloop(rows: Rows) -> None:
+    """The floor on uvloop (compiled with Cython on libuv): ``await asyncio.sleep(0)``."""
+
+    async def worker(durations: list[float]) -> None:
+        sleep = asyncio.sleep
+        for _ in durations:
+            await sleep(0)
+
+    _gather_on(_uvloop_run, worker, rows)
+
+
+def _uvloop_run(coro: Coroutine[Any, Any, Any]) -> None:
+    import uvloop
+
+    with asyncio.Runner(loop_factory=uvloop.new_event_loop) as runner:
+        runner.run(coro)
+
+
 def simpy_sleep(rows: Rows) -> None:
     """SimPy: a process per task, ``yield env.timeout(d)`` (an event per waiter)."""
     import simpy
@@ -224,6 +242,20 @@ def sleep0_rates(loops: Loops) -> None:
         await asyncio.gather(*(every(ticks) for _hz, ticks in loops))
 
     asyncio.run(main())
+
+
+def sleep0_rates_uvloop(loops: Loops) -> None:
+    """The floor on uvloop: ``await asyncio.sleep(0)`` once per tick."""
+
+    async def every(ticks: int) -> None:
+        sleep = asyncio.sleep
+        for _ in range(ticks):
+            await sleep(0)
+
+    async def main() -> None:
+        await asyncio.gather(*(every(ticks) for _hz, ticks in loops))
+
+    _uvloop_run(main())
 
 
 def simpy_rate(loops: Loops) -> None:

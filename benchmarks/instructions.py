@@ -147,11 +147,13 @@ WORKLOADS = {
 
 VARIANTS: dict[str, Callable[..., Any]] = {
     "asyncio.sleep(0), stock loop": peers.sleep0_fanout,
+    "asyncio.sleep(0), uvloop": peers.sleep0_fanout_uvloop,
     "least future-based sleep": peers.least_future_sleep,
     "clock.sleep": peers.clock_sleep,
     "asyncio.sleep, sim loop": peers.asyncio_sleep_sim,
     "SimPy env.timeout": peers.simpy_sleep,
     "asyncio.sleep(0) per tick, stock": peers.sleep0_rates,
+    "asyncio.sleep(0) per tick, uvloop": peers.sleep0_rates_uvloop,
     "clock.rate": peers.clock_rate,
     "asyncio.sleep rate, sim loop": peers.asyncio_rate_sim,
     "SimPy rate": peers.simpy_rate,
@@ -219,6 +221,28 @@ class _Marks:
         self._lib.evb_dump()
 
 
+class _AllocCounter:
+    """Counts calls to CPython's memory allocators (the ``PYMEM_DOMAIN_MEM`` and
+    ``PYMEM_DOMAIN_OBJ`` domains: every object and buffer not served by a free list) and
+    the bytes they were asked for, between ``begin`` and ``end`` (``wallgap.py`` builds the
+    library)."""
+
+    def __init__(self, library: str) -> None:
+        import ctypes
+
+        self._lib = ctypes.PyDLL(library)  # PyDLL: called with the GIL held
+        self._lib.evb_alloc_read.argtypes = [ctypes.c_int]
+        self._lib.evb_alloc_read.restype = ctypes.c_ulonglong
+        self._lib.evb_alloc_install()
+
+    def begin(self) -> None:
+        self._lib.evb_alloc_start()
+
+    def end(self) -> str:
+        self._lib.evb_alloc_stop()
+        return " ".join(str(self._lib.evb_alloc_read(i)) for i in range(4))
+
+
 def run_variant(args: argparse.Namespace) -> int:
     """Build the plan, then run (and time) the variant on its first ``count`` entries for
     each count given; print ``wall <count> <seconds>`` (and KUKA's final ``state``)."""
@@ -242,13 +266,18 @@ def run_variant(args: argparse.Namespace) -> int:
     marks = _Marks(args.callgrind_marks) if args.callgrind_marks else None
     if marks is not None:
         marks.start_instrumentation()
+    allocs = _AllocCounter(args.alloc_counter) if args.alloc_counter else None
     for count in args.count:
         work = workload.take(plan, count)
         if marks is not None:
             marks.begin()
+        if allocs is not None:
+            allocs.begin()
         start = time.perf_counter()
         state = call(work)
         elapsed = time.perf_counter() - start
+        if allocs is not None:
+            print("allocs", count, allocs.end())
         if marks is not None:
             marks.end()
         print("wall", count, repr(elapsed))
@@ -470,6 +499,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--max-count", type=int, help=argparse.SUPPRESS)
     p.add_argument("--kuka-hz", type=float, default=100.0, help=argparse.SUPPRESS)
     p.add_argument("--callgrind-marks", help=argparse.SUPPRESS)
+    p.add_argument("--alloc-counter", help=argparse.SUPPRESS)
     return p.parse_args(argv)
 
 
