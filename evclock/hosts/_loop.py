@@ -106,6 +106,7 @@ def check_stall_timeout(value: object) -> float | None:
 
 
 _copy_context = contextvars.copy_context
+_round_float = float.__round__
 _heappush = heapq.heappush
 
 
@@ -349,7 +350,10 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         # with benchmarks/instructions.py).
         core = self._core
         try:
-            when_ns = core.now_ns + round(delay * 1e9)
+            # (a float's own __round__: round() looks it up on the type on every call)
+            when_ns = core.now_ns + (
+                _round_float(delay * 1e9) if type(delay) is float else round(delay * 1e9)
+            )
         except (TypeError, ValueError, OverflowError):  # None, NaN, infinite, not a number
             if delay is None:
                 raise InvalidTypeError("delay must not be None") from None
