@@ -1,8 +1,10 @@
 """Where wall time per wake-up goes that instruction counts do not show: one command, one run.
 
 For evclock's ``clock.sleep`` / ``clock.rate``, ``asyncio.sleep`` on evclock's sim loop,
-SimPy and stock asyncio's ``sleep(0)`` task switch, on the fan-out and rate-loop workloads
-of ``instructions.py`` (same plans, same variants: ``_peers.py``), it prints per wake-up:
+SimPy, stock asyncio's ``sleep(0)`` task switch and the least a future-based sleep can cost
+(a plain function waking tasks parked on C futures: no event loop, no evclock code), on the
+fan-out and rate-loop workloads of ``instructions.py`` (same plans, same variants:
+``_peers.py``), it prints per wake-up:
 
 * **instructions**, **D1 misses** (first-level data cache, reads + writes), **LL misses**
   (last level, data), **I1 misses**, **conditional and indirect branch mispredicts**: one
@@ -21,6 +23,10 @@ of ``instructions.py`` (same plans, same variants: ``_peers.py``), it prints per
 * **wall ns** per wake-up, same method, best of ``--wall-rounds`` interleaved rounds, as a
   ratio to SimPy, with the machine's load average beside it.
 
+``--also NAME=PATH`` (repeatable) runs evclock's variants a second time on the ``evclock``
+package under ``PATH`` (first on ``PYTHONPATH``): an earlier version (``git worktree add``)
+or a compiled prototype, measured in the same run.
+
 Run: ``python benchmarks/wallgap.py [--sleeps 60 --rate-ms 1000 --jobs 2 --wall-rounds 5]``.
 Needs valgrind, gcc, valgrind's headers and Python's headers. CPython's specialisation
 statistics need a build configured with ``--enable-pystats``; the script says whether this
@@ -31,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import concurrent.futures
+import math
 import os
 import re
 import subprocess
@@ -80,6 +87,7 @@ unsigned long long evb_alloc_read(int i) { return i < 2 ? calls[i] : bytes[i - 2
 """
 
 FANOUT = (
+    "least future-based sleep",
     "clock.sleep",
     "asyncio.sleep, sim loop",
     "SimPy env.timeout",
@@ -92,6 +100,25 @@ RATES = (
     "asyncio.sleep(0) per tick, stock",
 )
 SIMPY = {"fanout": "SimPy env.timeout", "rates": "SimPy rate"}
+#: The variants that run evclock's code (run again for each ``--also`` tree).
+EVCLOCK = ("clock.sleep", "asyncio.sleep, sim loop", "clock.rate", "asyncio.sleep rate, sim loop")
+
+
+@dataclass(frozen=True)
+class Entry:
+    """A job, run on this checkout's evclock or on another tree's (``--also``)."""
+
+    job: ins.Job
+    label: str
+    pythonpath: str = ""
+
+    def env(self) -> dict[str, str]:
+        env = {**os.environ, "PYTHONHASHSEED": "0"}
+        if self.pythonpath:
+            env["PYTHONPATH"] = self.pythonpath
+        return env
+
+
 EVENTS = ("Ir", "D1mr", "D1mw", "DLmr", "DLmw", "I1mr", "ILmr", "Bcm", "Bim")
 
 
@@ -112,8 +139,9 @@ def build_alloc_counter(directory: str) -> str:
     return library
 
 
-def simulate(job: ins.Job, marks: str) -> list[dict[str, int]]:
+def simulate(entry: Entry, marks: str) -> list[dict[str, int]]:
     """Each measured run's event totals under callgrind with cache and branch simulation."""
+    job = entry.job
     with tempfile.TemporaryDirectory() as out:
         base = os.path.join(out, "callgrind.out")
         done = subprocess.run(
@@ -131,10 +159,10 @@ def simulate(job: ins.Job, marks: str) -> list[dict[str, int]]:
             capture_output=True,
             text=True,
             timeout=3600,
-            env={**os.environ, "PYTHONHASHSEED": "0"},
+            env=entry.env(),
         )
         if done.returncode:
-            raise RuntimeError(f"{job.variant} failed:\n{done.stdout}\n{done.stderr}")
+            raise RuntimeError(f"{entry.label} failed:\n{done.stdout}\n{done.stderr}")
         totals = []
         for i in range(1, len(job.counts) + 1):
             with open(f"{base}.{i}") as f:
@@ -148,19 +176,43 @@ def simulate(job: ins.Job, marks: str) -> list[dict[str, int]]:
     return totals
 
 
-def count_allocations(job: ins.Job, library: str) -> list[int]:
+def count_allocations(entry: Entry, library: str) -> list[int]:
     """Allocator calls (MEM, OBJ) and bytes (MEM, OBJ) per wake-up, from a plain process."""
+    job = entry.job
     done = subprocess.run(
         [*job.command(job.counts), "--alloc-counter", library],
         capture_output=True,
         text=True,
         timeout=3600,
-        env={**os.environ, "PYTHONHASHSEED": "0"},
+        env=entry.env(),
     )
     if done.returncode:
         raise RuntimeError(f"{job.variant} failed:\n{done.stdout}\n{done.stderr}")
     small, big = ([int(x) for x in line.split()[1:]] for line in ins._output(done.stdout, "allocs"))
     return [round((b - s) / job.units) for s, b in zip(small, big, strict=True)]
+
+
+def wall(entries: Sequence[Entry], scale: int, rounds: int) -> list[float]:
+    """Wall ns per wake-up of each entry: plain runs at ``scale`` times both counts,
+    ``rounds`` rounds interleaved across the entries, fastest of each count kept."""
+    best = [[math.inf, math.inf] for _ in entries]
+    for _round in range(rounds):
+        for i, entry in enumerate(entries):
+            job = entry.job
+            counts = [c * scale for c in job.counts]
+            done = subprocess.run(
+                job.command(counts), capture_output=True, text=True, env=entry.env()
+            )
+            if done.returncode:
+                raise RuntimeError(f"{entry.label} failed:\n{done.stdout}\n{done.stderr}")
+            for line in ins._output(done.stdout, "wall"):
+                count, seconds = line.split()
+                k = counts.index(int(count))
+                best[i][k] = min(best[i][k], float(seconds))
+    return [
+        (b[1] - b[0]) / (entry.job.units * scale) * 1e9
+        for b, entry in zip(best, entries, strict=True)
+    ]
 
 
 @dataclass
@@ -226,6 +278,14 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     p.add_argument("--wall-scale", type=int, default=10, help="wall runs' counts, x valgrind's")
     p.add_argument("--wall-rounds", type=int, default=5, help="interleaved wall rounds (5)")
     p.add_argument("--only", choices=("fanout", "rates"), action="append")
+    p.add_argument(
+        "--also",
+        metavar="NAME=PATH",
+        action="append",
+        default=[],
+        help="also run evclock's variants on the evclock package under PATH (put first on "
+        "PYTHONPATH), labelled NAME: another version, or a compiled prototype",
+    )
     return p.parse_args(argv)
 
 
@@ -236,25 +296,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     tmp = tempfile.TemporaryDirectory()
     marks = ins.build_marks(tmp.name)
     allocs = build_alloc_counter(tmp.name)
-    jobs: dict[str, list[ins.Job]] = {}
+    trees = [("", "")]
+    for also in args.also:
+        name, sep, path = also.partition("=")
+        if not sep or not os.path.isdir(os.path.join(path, "evclock")):
+            raise SystemExit(f"--also needs NAME=PATH with an evclock package in PATH: {also!r}")
+        trees.append((f" [{name}]", os.path.abspath(path)))
+    entries: dict[str, list[Entry]] = {}
+    plans = []
     if "fanout" in parts:
         counts = ins._half(args.sleeps, "--sleeps")
-        jobs["fanout"] = [ins.Job("fanout", v, args.tasks, counts, args.seed) for v in FANOUT]
+        plans.append(("fanout", FANOUT, args.tasks, counts))
     if "rates" in parts:
         counts = ins._half(args.rate_ms, "--rate-ms")
-        jobs["rates"] = [ins.Job("rates", v, args.loops, counts, args.seed) for v in RATES]
-    every = [job for js in jobs.values() for job in js]
+        plans.append(("rates", RATES, args.loops, counts))
+    for key, variants, n, counts in plans:
+        entries[key] = [
+            Entry(ins.Job(key, v, n, counts, args.seed), v + suffix, path)
+            for v in variants
+            for suffix, path in trees
+            if not path or v in EVCLOCK
+        ]
+    every = [entry for es in entries.values() for entry in es]
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
-        sims = {job: pool.submit(simulate, job, marks) for job in every}
-        rows: dict[ins.Job, Row] = {}
-        for job in every:
-            small, big = sims[job].result()
-            per = {e: (big[e] - small[e]) / job.units for e in EVENTS}
-            rows[job] = Row(per, count_allocations(job, allocs))
-    harness = ins.Harness(1, args.wall_scale, args.wall_rounds, marks)
+        sims = {entry: pool.submit(simulate, entry, marks) for entry in every}
+        rows: dict[Entry, Row] = {}
+        for entry in every:
+            small, big = sims[entry].result()
+            per = {e: (big[e] - small[e]) / entry.job.units for e in EVENTS}
+            rows[entry] = Row(per, count_allocations(entry, allocs))
     load_before = load()
-    for job, ns in zip(every, harness.wall(every), strict=True):
-        rows[job].wall_ns = ns
+    for entry, ns in zip(every, wall(every, args.wall_scale, args.wall_rounds), strict=True):
+        rows[entry].wall_ns = ns
     load_after = load()
 
     print(
@@ -271,23 +344,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"interleaved rounds; {load_before} before, {load_after} after"
     )
     print(pystats())
-    for key, js in jobs.items():
-        simpy = rows[next(j for j in js if j.variant == SIMPY[key])]
+    for key, es in entries.items():
+        simpy = rows[next(e for e in es if e.label == SIMPY[key])]
         if key == "fanout":
             title = f"fanout: {args.tasks:,} tasks x N = {args.sleeps} sleeps of 1-10 ms (ns)"
         else:
             title = f"rates: {args.loops} rate loops at 10-500 Hz for N = {args.rate_ms} ms"
         print(f"\n{title}")
         print(
-            f"  {'variant':<33}{'instr':>7}{'D1 miss':>8}{'LL miss':>8}{'I1 miss':>8}"
+            f"  {'variant':<36}{'instr':>7}{'D1 miss':>8}{'LL miss':>8}{'I1 miss':>8}"
             f"{'Bc miss':>8}{'Bi miss':>8}{'est cyc':>8}{'allocs':>7}{'bytes':>6}"
             f"{'wall ns':>8}{'est/SimPy':>10}{'wall/SimPy':>11}"
         )
-        for job in js:
-            r = rows[job]
+        for entry in es:
+            r = rows[entry]
             e = r.events
             print(
-                f"  {job.variant:<33}{e['Ir']:>7,.0f}{r.d1:>8.1f}{r.ll:>8.2f}{e['I1mr']:>8.1f}"
+                f"  {entry.label:<36}{e['Ir']:>7,.0f}{r.d1:>8.1f}{r.ll:>8.2f}{e['I1mr']:>8.1f}"
                 f"{e['Bcm']:>8.1f}{e['Bim']:>8.1f}{r.cycles:>8,.0f}"
                 f"{r.allocs[0] + r.allocs[1]:>7}{r.allocs[2] + r.allocs[3]:>6}"
                 f"{r.wall_ns:>8,.0f}{r.cycles / simpy.cycles:>9.2f}x"

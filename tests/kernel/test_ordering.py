@@ -254,6 +254,32 @@ def test_a_pure_python_future_due_by_timer_wakes_every_waiter() -> None:
     assert evclock.run(main()) == (["a", "b"], 2.0)
 
 
+def test_a_future_subclass_woken_in_place_resolves_through_its_own_methods() -> None:
+    """The in-place wake-up calls the C future's methods unbound only on futures of exactly
+    that type: a subclass's own set_result and remove_done_callback run (one waiter, woken
+    by a timer: the short path), and the value and time are exact."""
+    calls: list[str] = []
+
+    class Traced(asyncio.Future[int]):
+        def set_result(self, result: int) -> None:
+            calls.append(f"set_result({result})")
+            super().set_result(result)
+
+        def remove_done_callback(self, fn: Callable[..., object]) -> int:
+            calls.append("remove_done_callback")
+            return super().remove_done_callback(fn)
+
+    async def main() -> tuple[int, int]:
+        loop = asyncio.get_running_loop()
+        fut = Traced()
+        loop.call_later(0.25, _SET_RESULT_UNLESS_CANCELLED, fut, 7)
+        value = await fut
+        return value, evclock.clock().now_ns()
+
+    assert evclock.run(main()) == (7, 250_000_000)
+    assert calls == ["remove_done_callback", "set_result(7)"]
+
+
 def test_sleep_timers_whose_futures_ended_elsewhere_fire_as_on_stock_asyncio() -> None:
     """The timer asyncio.sleep uses, next due, with its future already ended by something
     else (resolved by hand, cancelled, awaited by nobody): time moves to it and it fires as
