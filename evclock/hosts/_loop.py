@@ -233,10 +233,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         )
         core.future_factory = self._refuse_wait
         source.attach(core)  # may refuse (a source drives one host): before the selector too
-        super().__init__(selector)
-        # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
-        # every callback: answer from C, without a Python frame (set_debug() sets _debug).
-        self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
+        super().__init__(selector)  # (calls set_debug: get_debug is set there)
         self._source = source
         core.future_loop = self  # waits are possible from now until close()
         # Registered file descriptors, read on every iteration: the selector's own dict when
@@ -289,6 +286,21 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         self._source_poller: Any = None
         self._source_poller_fd: int | None = None
         self._sim_clock: SimClock | None = None
+
+    def set_debug(self, enabled: bool) -> None:
+        """Turn asyncio's debug mode on or off (as asyncio's ``set_debug``)."""
+        super().set_debug(enabled)
+        self._answer_debug()
+
+    def _answer_debug(self) -> None:
+        # asyncio's Future and Handle constructors ask loop.get_debug() on every wait and
+        # every callback: answered from C, without a Python frame - by bool() (False) while
+        # debug mode is off, the common case (one call, no attribute lookup: measured with
+        # benchmarks/wallgap.py), else by reading _debug. set_debug() is what sets _debug.
+        if self._debug is False:
+            self.get_debug = bool  # type: ignore[method-assign]
+        else:
+            self.get_debug = functools.partial(_read_debug, self)  # type: ignore[method-assign]
 
     def create_future(self) -> asyncio.Future[Any]:
         """A future on this loop (made without the ``loop=`` keyword when it runs here)."""

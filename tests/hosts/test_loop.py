@@ -529,3 +529,20 @@ def test_a_paused_loop_waits_as_paused_while_a_thread_polls_with_a_timeout() -> 
         assert loop.run_until_complete(main()) == 1.0
     finally:
         loop.close()
+
+
+def test_get_debug_follows_set_debug_and_futures_see_it() -> None:
+    """get_debug() answers what set_debug() set, and asyncio's futures ask it: with debug
+    mode on, a future records where it was created; off, it does not."""
+    loop = SimEventLoop()
+    try:
+        assert loop.get_debug() is False
+        assert loop.create_future()._source_traceback is None  # type: ignore[attr-defined]
+        loop.set_debug(True)
+        assert loop.get_debug() is True
+        assert loop.create_future()._source_traceback  # type: ignore[attr-defined]
+        loop.set_debug(False)
+        assert loop.get_debug() is False
+        assert loop.create_future()._source_traceback is None  # type: ignore[attr-defined]
+    finally:
+        loop.close()
