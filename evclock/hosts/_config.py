@@ -44,6 +44,7 @@ a URL such as ``unix:///tmp/sim.sock?name=controller`` or ``ros2:///clock``."""
 _CLOCK_SCHEMES: dict[str, str | Callable[[str], TimeSource]] = {
     "unix": "evclock.remote._participant:source_from_url",
     "tcp": "evclock.remote._participant:source_from_url",
+    "tls": "evclock.remote._participant:source_from_url",
     "ros2": "evclock.ros2._url:source_from_url",
 }
 

@@ -1,4 +1,5 @@
-"""Clock endpoints: ``unix:///path/sim.sock`` (default) or ``tcp://127.0.0.1:PORT``.
+"""Clock endpoints: ``unix:///path/sim.sock`` (default), ``tcp://127.0.0.1:PORT``, or
+``tls://HOST:PORT`` (the same protocol inside TLS 1.3, between machines: :mod:`._tls`).
 
 Options ride in the query string, so one string (an argument or ``EVCLOCK_CLOCK``) says
 everything a participant needs: ``unix:///tmp/sim.sock?mode=follow&name=observer``.
@@ -22,10 +23,23 @@ import tempfile
 import urllib.parse
 
 from evclock._errors import InvalidArgumentError, InvalidTypeError
+from evclock.remote import _tls
 
 MODES = ("lockstep", "follow")
 #: Query keys a participant's address may carry.
-_PARTICIPANT_KEYS = ("mode", "name", "token", "timeout", "server_uid")
+_PARTICIPANT_KEYS = (
+    "mode",
+    "name",
+    "token",
+    "timeout",
+    "server_uid",
+    "tls_ca",
+    "tls_fingerprint",
+)
+#: Query keys that only a ``tls://`` address may carry.
+_TLS_KEYS = ("tls_ca", "tls_fingerprint")
+#: Schemes of a host and port.
+_NETWORK_SCHEMES = ("tcp", "tls")
 #: Wall seconds a participant waits for the server (to appear, to grant, to reply) by default.
 DEFAULT_PEER_TIMEOUT = 60.0
 #: The shortest ``timeout`` accepted: a few keepalive periods of the server.
@@ -46,12 +60,16 @@ class Address:
     timeout: float = DEFAULT_PEER_TIMEOUT
     #: The user id the server of a Unix socket must run as (default: this process's user).
     server_uid: int | None = None
+    #: ``tls://``: the CA file that signed the server's certificate (host name checked).
+    tls_ca: str | None = None
+    #: ``tls://``: the pinned SHA-256 fingerprint of the server's certificate (32 bytes).
+    tls_fingerprint: bytes | None = None
 
     def __str__(self) -> str:
         if self.scheme == "unix":
             return f"unix://{self.path}"
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"tcp://{host}:{self.port}"
+        return f"{self.scheme}://{host}:{self.port}"
 
     @property
     def is_loopback(self) -> bool:
@@ -122,12 +140,23 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
     token = options.get("token")
     if token is not None and not token:
         raise InvalidArgumentError(f"token must not be empty in clock address {url!r}")
+    tls_keys = [key for key in _TLS_KEYS if key in options]
+    if tls_keys and parts.scheme != "tls":
+        raise InvalidArgumentError(
+            f"{tls_keys[0]} is an option of a tls:// clock address, not of {url!r}"
+        )
+    tls_ca = options.get("tls_ca")
+    if tls_ca is not None and not tls_ca:
+        raise InvalidArgumentError(f"tls_ca must name a CA file in clock address {url!r}")
+    fingerprint = options.get("tls_fingerprint")
     common = {
         "mode": mode,
         "name": name,
         "token": token,
         "timeout": timeout,
         "server_uid": server_uid,
+        "tls_ca": tls_ca,
+        "tls_fingerprint": None if fingerprint is None else _tls.parse_fingerprint(fingerprint),
     }
     if parts.scheme == "unix":
         if parts.netloc or not parts.path:
@@ -135,18 +164,20 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
                 f"a unix clock address is unix:///absolute/path.sock (three slashes), got {url!r}"
             )
         return Address("unix", path=parts.path, **common)  # type: ignore[arg-type]
-    if parts.scheme == "tcp":
+    if parts.scheme in _NETWORK_SCHEMES:
         try:
             host, port = parts.hostname, parts.port
         except ValueError:
             host = port = None
         if not host or port is None:
             raise InvalidArgumentError(
-                f"a tcp clock address is tcp://HOST:PORT (e.g. tcp://127.0.0.1:7411), got {url!r}"
+                f"a {parts.scheme} clock address is {parts.scheme}://HOST:PORT (e.g. "
+                f"{parts.scheme}://127.0.0.1:7411), got {url!r}"
             )
-        return Address("tcp", host=host, port=port, **common)  # type: ignore[arg-type]
+        return Address(parts.scheme, host=host, port=port, **common)  # type: ignore[arg-type]
     raise InvalidArgumentError(
-        f"unsupported clock address {url!r}: use unix:///path/sim.sock or tcp://127.0.0.1:PORT"
+        f"unsupported clock address {url!r}: use unix:///path/sim.sock, tcp://127.0.0.1:PORT "
+        "or tls://HOST:PORT"
     )
 
 
@@ -154,8 +185,9 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
     """A non-blocking listening socket for ``address``.
 
     A Unix socket file is created with owner-only permissions (0600); an existing socket
-    file at the path is an error rather than silently replaced. TCP binds to a loopback
-    address unless ``allow_remote`` (which then requires a token, checked by the caller).
+    file at the path is an error rather than silently replaced. TCP and TLS bind to a
+    loopback address unless ``allow_remote``, which only TLS may use (a token is required
+    on both, checked by the caller): plain TCP is for one machine.
     """
     if address.scheme == "unix":
         if os.path.lexists(address.path):
@@ -176,7 +208,14 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
         if not address.is_loopback and not allow_remote:
             raise InvalidArgumentError(
                 f"{address} is not a loopback address; a clock server binds to 127.0.0.1 "
-                "unless told otherwise (allow_remote=True with a token)"
+                "unless told otherwise (allow_remote=True, on tls:// with a token)"
+            )
+        if not address.is_loopback and address.scheme != "tls":
+            raise InvalidArgumentError(
+                f"{address} is not a loopback address, and plain tcp:// would carry the "
+                "simulation's time and data unencrypted to anyone on the path and let any "
+                "host pose as the server: serve across machines on tls://HOST:PORT with a "
+                "certificate (tls_cert=, tls_key=) and a token"
             )
         family = socket.AF_INET6 if ":" in address.host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_STREAM)
@@ -193,7 +232,7 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
 
 def bound_address(sock: socket.socket, address: Address) -> Address:
     """``address`` with the port the system chose when it asked for port 0."""
-    if address.scheme == "tcp" and address.port == 0:
+    if address.scheme in _NETWORK_SCHEMES and address.port == 0:
         return dataclasses.replace(address, port=sock.getsockname()[1])
     return address
 
@@ -213,7 +252,7 @@ def connect(address: Address, timeout: float) -> socket.socket:
     except OSError:
         sock.close()
         raise
-    if address.scheme == "tcp":
+    if address.scheme in _NETWORK_SCHEMES:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     return sock
 

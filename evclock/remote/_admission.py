@@ -8,7 +8,8 @@ retries), so that connections that never finish cannot keep an honest participan
 Unix socket the peer's user id (``SO_PEERCRED``) must be one the server admits. The handshake
 is HELLO -> CHALLENGE (the server's proof first) -> PROOF -> WELCOME or REFUSE; a
 participant that passed it joins (``_on_hello``) and is read with the documented frame
-limit from then on.
+limit from then on. On ``tls://`` a TLS handshake comes first (``_tls_handshake``, never
+blocking the loop), within the same ``HELLO_TIMEOUT`` and pending slots.
 """
 
 from __future__ import annotations
@@ -17,11 +18,13 @@ import contextlib
 import hmac
 import logging
 import socket
+import ssl
 import time
 from typing import Any, Final
 
 from evclock._errors import ProtocolError
 from evclock.remote import _protocol as proto
+from evclock.remote import _tls
 from evclock.remote._address import peer_credentials
 from evclock.remote._checks import one_line, shown
 from evclock.remote._core import ServerCore
@@ -120,12 +123,61 @@ class Admission(ServerCore):
                     "the oldest; try again",
                     proto.REFUSE_BUSY,
                 )
+            peer.tls_waiting = self._tls is not None
             self._pending.append(peer)
             self._loop.add_reader(sock, self._on_readable, peer)
             # The server holds sim time exactly while a peer's traffic matters (a working
             # participant): the loop must not also infer held time from its unread bytes
             # (a follower that reads late must never hold the simulation).
             self._loop.account_fd(sock.fileno(), True)
+
+    def _tls_handshake(self, peer: Peer) -> bool:
+        """The server's side of a TLS handshake, as far as the bytes allow (never blocks):
+        True once it is done. A client whose first byte does not start TLS is refused in
+        plain text, so that a plain evclock participant reads why."""
+        sock = peer.sock
+        context = self._tls
+        assert context is not None
+        if not isinstance(sock, ssl.SSLSocket):
+            try:
+                first = sock.recv(1, socket.MSG_PEEK)
+            except _tls.WOULD_BLOCK:
+                return False
+            except OSError as exc:
+                self._lost(peer, f"lost its connection ({exc})")
+                return False
+            if not first:
+                self._lost(peer, "closed its connection in the TLS handshake")
+                return False
+            if first[0] != _tls.TLS_RECORD_HANDSHAKE:
+                self._refuse(
+                    peer,
+                    f"this clock server speaks TLS: join it with {self._address} (and "
+                    "?tls_ca= or ?tls_fingerprint= to verify it), not plain tcp://",
+                )
+                return False
+            self._loop.remove_reader(sock)
+            sock = peer.sock = context.wrap_socket(
+                sock, server_side=True, do_handshake_on_connect=False
+            )
+            self._loop.add_reader(sock, self._on_readable, peer)
+        try:
+            sock.do_handshake()
+        except ssl.SSLWantReadError:
+            return False
+        except ssl.SSLWantWriteError:  # its send buffer is full: go on once it drains
+            self._loop.add_writer(sock, self._tls_writable, peer)
+            return False
+        except (ssl.SSLError, OSError) as exc:
+            reason = getattr(exc, "reason", None) or exc
+            self._refuse(peer, f"TLS handshake failed ({reason})")
+            return False
+        peer.tls_waiting = False
+        return True
+
+    def _tls_writable(self, peer: Peer) -> None:
+        self._loop.remove_writer(peer.sock)
+        self._on_readable(peer)
 
     def _transcript(self, peer: Peer) -> bytes:
         return proto.transcript(

@@ -23,12 +23,14 @@ from __future__ import annotations
 
 import asyncio
 import socket
+import ssl
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
 from evclock._errors import EvClockError
 from evclock.hosts._loop import SimEventLoop
 from evclock.remote import _protocol as proto
+from evclock.remote import _tls
 from evclock.remote._address import Address
 from evclock.remote._limits import Limits, exceeded
 from evclock.remote._peer import Peer
@@ -53,6 +55,7 @@ class ServerCore:
         max_frame: int,
         peer_uids: tuple[int, ...],
         limits: Limits,
+        tls: ssl.SSLContext | None = None,
     ) -> None:
         self._loop = loop
         # Its kernel (SimClock.core): sim time read as a plain attribute on every round.
@@ -64,6 +67,7 @@ class ServerCore:
         self._max_frame = max_frame
         self._peer_uids = peer_uids
         self._limits = limits
+        self._tls = tls  # tls://: every connection is a TLS session first (_admission)
         self._listener = listener
         self._address = address
         self._pending: list[Peer] = []  # connected, HELLO not yet accepted
@@ -136,7 +140,7 @@ class ServerCore:
             return
         try:
             sent = peer.sock.send(frame)
-        except (BlockingIOError, InterruptedError):
+        except _tls.WOULD_BLOCK:
             sent = 0
         except OSError:
             # The peer closed its end: its reader sees the goodbye (or the bare EOF) next
@@ -150,7 +154,7 @@ class ServerCore:
     def _on_writable(self, peer: Peer) -> None:
         try:
             sent = peer.sock.send(peer.out)
-        except (BlockingIOError, InterruptedError):
+        except _tls.WOULD_BLOCK:
             return
         except OSError:
             self._loop.remove_writer(peer.sock)  # closed: the reader reports how it ended

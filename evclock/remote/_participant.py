@@ -14,6 +14,7 @@ pending sleeps raise ``ClockJumpedError``, asyncio timers keep their remaining d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hmac
 import itertools
 import json
@@ -37,6 +38,7 @@ from evclock._errors import (
 )
 from evclock.kernel._source import Gate
 from evclock.remote import _protocol as proto
+from evclock.remote import _tls
 from evclock.remote._address import Address, connect, parse_address, peer_credentials
 from evclock.remote._routing import Message
 from evclock.remote._token import check_token
@@ -65,8 +67,14 @@ def _default_name() -> str:
 class RemoteClockSource(TimeSource):
     """Sim time of a simulation in another process, joined over a clock server's socket.
 
-    :param address: the server's address, ``unix:///path.sock`` or ``tcp://127.0.0.1:PORT``,
-        optionally with ``?mode=lockstep|follow&name=...&token=...&timeout=SECONDS``.
+    :param address: the server's address, ``unix:///path.sock``, ``tcp://127.0.0.1:PORT`` or
+        ``tls://HOST:PORT``, optionally with
+        ``?mode=lockstep|follow&name=...&token=...&timeout=SECONDS`` (and on ``tls://``
+        ``&tls_ca=PATH`` or ``&tls_fingerprint=SHA256``).
+    :param tls_ca: ``tls://``: the CA file (PEM) that signed the server's certificate; the
+        certificate must also name the address's host (overrides ``?tls_ca=``).
+    :param tls_fingerprint: ``tls://``: the SHA-256 fingerprint of the server's certificate
+        in hex, colons allowed (overrides ``?tls_fingerprint=``).
 
     *lockstep* (default): the simulation does not advance while this process works at
     ``t`` nor past its next deadline. *follow*: time follows the server every step; the
@@ -81,11 +89,15 @@ class RemoteClockSource(TimeSource):
     ``?server_uid=``), and with a ``?token=`` it must prove it knows the token before this
     process proves it does (the token itself is never sent): its first answer must be a
     CHALLENGE whose proof verifies, and anything else first ends the join (a busy answer is
-    retried). TCP needs a token.
+    retried). TCP and TLS need a token. On ``tls://`` the server's certificate is verified
+    (``tls_ca`` or ``tls_fingerprint``) in the TLS handshake, before anything of the
+    protocol is sent, and everything travels encrypted.
 
-    :raises InvalidArgumentError: a TCP address without ``?token=``.
+    :raises InvalidArgumentError: a TCP or TLS address without ``?token=``, a TLS address
+        without ``tls_ca`` or ``tls_fingerprint``.
     :raises WeakTokenError: a token below 128 bits (fewer than 22 URL-safe characters).
-    :raises JoinRefusedError: the server refused this process, or it is not who it should be.
+    :raises JoinRefusedError: the server refused this process, or it is not who it should be
+        (on TLS: its certificate does not verify).
     :raises ClockLostError: no server answered within ``timeout``.
     :raises ProtocolError: the server speaks another protocol version.
     """
@@ -93,10 +105,30 @@ class RemoteClockSource(TimeSource):
     external = True
     free_running = True  # idle waits for the server's time: never a deadlock
 
-    def __init__(self, address: str | Address) -> None:
+    def __init__(
+        self,
+        address: str | Address,
+        *,
+        tls_ca: str | None = None,
+        tls_fingerprint: str | None = None,
+    ) -> None:
         addr = address if isinstance(address, Address) else parse_address(address)
         if addr.token is not None:
             check_token(addr.token)  # before anything is sent: a weak one is refused here too
+        if tls_ca is not None or tls_fingerprint is not None:
+            if addr.scheme != "tls":
+                raise InvalidArgumentError(
+                    f"tls_ca and tls_fingerprint verify a tls:// server, not {addr}"
+                )
+            if tls_ca is not None:
+                addr = dataclasses.replace(addr, tls_ca=tls_ca)
+            if tls_fingerprint is not None:
+                if not isinstance(tls_fingerprint, str):
+                    raise InvalidTypeError(
+                        f"tls_fingerprint is a hex string, got {type(tls_fingerprint).__name__}"
+                    )
+                fingerprint = _tls.parse_fingerprint(tls_fingerprint)
+                addr = dataclasses.replace(addr, tls_fingerprint=fingerprint)
         self._address = addr
         self._loop: Any = None  # the SimEventLoop this source drives (set by attach)
         self.name = addr.name or _default_name()
@@ -139,12 +171,16 @@ class RemoteClockSource(TimeSource):
     # ------------------------------------------------------------ joining
 
     def _join(self, addr: Address) -> tuple[socket.socket, int, dict[str, Any]]:
-        if addr.scheme == "tcp" and addr.token is None:
+        if addr.scheme in ("tcp", "tls") and addr.token is None:
             raise InvalidArgumentError(
-                f"joining the clock server at {addr} over tcp needs its token: add "
-                "?token=... to the clock address (any user of the machine can reach a tcp "
-                "port, so both sides prove they know the token; it is never sent)"
+                f"joining the clock server at {addr} over {addr.scheme} needs its token: add "
+                f"?token=... to the clock address (any user of the machine can reach a "
+                f"{addr.scheme} port, so both sides prove they know the token; it is never "
+                "sent)"
             )
+        tls = (
+            _tls.client_context(addr.tls_ca, addr.tls_fingerprint) if addr.scheme == "tls" else None
+        )
         deadline = time.monotonic() + self._timeout
         delay = _RETRY
         while True:
@@ -167,6 +203,9 @@ class RemoteClockSource(TimeSource):
                 raise ClockLostError(
                     f"cannot connect to the clock server at {addr}: {exc}"
                 ) from None
+            if tls is not None:  # the server's certificate, before a byte of the protocol
+                sock.settimeout(max(deadline - time.monotonic(), 0.01))
+                sock = _tls.wrap_client(sock, tls, addr.host, addr.tls_fingerprint, str(addr))
             try:
                 joined = self._handshake(sock, addr, deadline)
             except BaseException:
@@ -294,7 +333,7 @@ class RemoteClockSource(TimeSource):
                 raise ClockLostError(f"the clock server at {addr} did not answer the HELLO in time")
             sock.settimeout(remaining)
             try:
-                data = sock.recv(65536)
+                data = _tls.recv(sock, 65536)
             except TimeoutError:
                 continue
             except OSError as exc:
@@ -560,7 +599,7 @@ class RemoteClockSource(TimeSource):
             self._out.clear()
         try:
             sent = self._sock.send(frame)
-        except (BlockingIOError, InterruptedError):
+        except _tls.WOULD_BLOCK:
             sent = 0
         except ConnectionError:
             self._lose(self._closed_by_server())
@@ -578,7 +617,7 @@ class RemoteClockSource(TimeSource):
     def _flush(self) -> None:
         try:
             sent = self._sock.send(self._out)
-        except (BlockingIOError, InterruptedError):
+        except _tls.WOULD_BLOCK:
             return
         except ConnectionError:
             self._lose(self._closed_by_server())
@@ -594,8 +633,10 @@ class RemoteClockSource(TimeSource):
 
     def _on_readable(self) -> None:
         try:
-            data = self._sock.recv(262144)
-        except (BlockingIOError, InterruptedError):
+            # On TLS this also takes what the SSL object decrypted already: nothing is left
+            # where the loop's poll of the socket (wait_for_source, add_reader) cannot see it.
+            data = _tls.recv(self._sock, 262144)
+        except _tls.WOULD_BLOCK:
             return
         except ConnectionError:
             self._lose(self._closed_by_server())
@@ -759,7 +800,7 @@ def participant() -> RemoteClockSource:
 
 
 def source_from_url(url: str) -> TimeSource:
-    """The ``unix://`` and ``tcp://`` entries of the clock-scheme registry."""
+    """The ``unix://``, ``tcp://`` and ``tls://`` entries of the clock-scheme registry."""
     if not isinstance(url, str):
         raise InvalidArgumentError(f"a clock address is a string, got {url!r}")
     return RemoteClockSource(url)

@@ -38,6 +38,7 @@ class Peer:
         "sock",
         "stale_time",
         "subscriptions",
+        "tls_waiting",
         "working_at",
         "working_since",
     )
@@ -66,6 +67,7 @@ class Peer:
         self.stale_time = False
         self.jump_sent = 0  # the last JUMP sent to it, and the last it applied (JUMPED):
         self.jump_acked = 0  # until they match, its DONEs are from before the jump
+        self.tls_waiting = False  # a tls:// connection whose TLS handshake is not done
 
     def describe(self) -> str:
         mode = "lockstep" if self.mode == proto.MODE_LOCKSTEP else "follow"

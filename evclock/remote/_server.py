@@ -31,7 +31,7 @@ from evclock._errors import (
 from evclock.hosts._loop import SimEventLoop
 from evclock.kernel._jumps import JumpThreshold
 from evclock.outside._threads import mark_internal
-from evclock.remote import _admission
+from evclock.remote import _admission, _tls
 from evclock.remote import _protocol as proto
 from evclock.remote._address import bound_address, listen, parse_address, private_dir
 from evclock.remote._admission import Admission
@@ -74,7 +74,8 @@ class ClockServer(Admission, Rounds, Routing, Services):
     The options are those of :func:`~evclock.remote.serve`, which documents them in full.
 
     :param loop: the :class:`~evclock.SimEventLoop` whose sim time is served.
-    :param address: ``unix:///path.sock`` or ``tcp://HOST:PORT`` to listen on.
+    :param address: ``unix:///path.sock``, ``tcp://HOST:PORT`` or ``tls://HOST:PORT`` to
+        listen on.
     :param on_fault: ``abort``, ``drop`` or ``pause``: what a lost lockstep participant causes.
     :param step_timeout: wall seconds a lockstep participant may work on one step (None: no
         limit).
@@ -85,10 +86,13 @@ class ClockServer(Admission, Rounds, Routing, Services):
     :param max_frame: the largest frame (bytes) a joined participant may send.
     :param peer_uids: user ids allowed to join over a Unix socket (default: this user's).
     :param limits: what one participant may make the server hold (default: ``Limits()``).
+    :param tls_cert: ``tls://``: the server's certificate chain (PEM file).
+    :param tls_key: ``tls://``: the certificate's private key (PEM file).
     :raises InvalidArgumentError: an unknown ``on_fault``, a bad ``step_timeout`` or
-        ``max_frame``, an invalid or unusable address, a TCP address without a token, a
-        non-loopback address without ``allow_remote``, or ``info`` that is not
-        JSON-serialisable.
+        ``max_frame``, an invalid or unusable address, a TCP or TLS address without a
+        token, a TLS address without a certificate and key (or a certificate elsewhere), a
+        non-loopback address without ``allow_remote`` or on plain TCP, or ``info`` that is
+        not JSON-serialisable.
     :raises InvalidTypeError: ``token`` is not a non-empty string, ``address`` is not a
         string, ``peer_uids`` holds something other than integers, or ``limits`` is not a
         :class:`~evclock.remote.Limits`.
@@ -108,6 +112,8 @@ class ClockServer(Admission, Rounds, Routing, Services):
         max_frame: int = proto.MAX_FRAME,
         peer_uids: Iterable[int] | None = None,
         limits: Limits | None = None,
+        tls_cert: str | None = None,
+        tls_key: str | None = None,
     ) -> None:
         if (
             isinstance(max_frame, bool)
@@ -144,11 +150,24 @@ class ClockServer(Admission, Rounds, Routing, Services):
         token = token if token is not None else parsed.token
         if token is not None:
             check_token(token)  # its proof goes to anyone who connects: an offline oracle
-        if parsed.scheme == "tcp" and token is None:
+        if parsed.scheme in ("tcp", "tls") and token is None:
             raise InvalidArgumentError(
                 f"serving on {parsed} needs a shared token (token=... or ?token=... in the "
-                "address): any user of the machine can reach a tcp port, so participants "
-                "must prove they know it (it is never sent); or serve on a unix:// socket"
+                f"address): any user of the machine can reach a {parsed.scheme} port, so "
+                "participants must prove they know it (it is never sent); or serve on a "
+                "unix:// socket"
+            )
+        tls = None
+        if parsed.scheme == "tls":
+            if tls_cert is None or tls_key is None:
+                raise InvalidArgumentError(
+                    f"serving on {parsed} needs the server's certificate and key: "
+                    "tls_cert='cert.pem', tls_key='key.pem' (CLI: --tls-cert, --tls-key)"
+                )
+            tls = _tls.server_context(tls_cert, tls_key)
+        elif tls_cert is not None or tls_key is not None:
+            raise InvalidArgumentError(
+                f"tls_cert and tls_key are for a tls:// address, not {parsed}"
             )
         try:
             info_bytes = json.dumps(dict(info or {}), sort_keys=True).encode()
@@ -166,6 +185,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
             max_frame=max_frame,
             peer_uids=uids,
             limits=Limits() if limits is None else limits,
+            tls=tls,
         )
         # Every jump, either way, reaches the participants (their clocks jump alike).
         self._jump_handle = loop.clock.on_jump(
@@ -260,6 +280,9 @@ class ClockServer(Admission, Rounds, Routing, Services):
         self._refusals.flush()
         frame = proto.closing(f"the clock server at {self._address} stopped: {reason}")
         for peer in [*self._peers, *self._pending]:
+            if peer.tls_waiting:  # no TLS session yet: nothing can be said to it
+                self._disconnect(peer)
+                continue
             with contextlib.suppress(OSError):
                 peer.sock.setblocking(True)
                 peer.sock.settimeout(0.5)
@@ -282,10 +305,14 @@ class ClockServer(Admission, Rounds, Routing, Services):
     # ------------------------------------------------------------ a joined participant's frames
 
     def _on_readable(self, peer: Peer) -> None:
+        if peer.tls_waiting and not self._tls_handshake(peer):
+            return
         try:
-            # Before the handshake a read never exceeds the pre-authentication frame limit.
-            data = peer.sock.recv(262144 if peer.name else proto.PRE_AUTH_MAX_FRAME + 5)
-        except (BlockingIOError, InterruptedError):
+            # Before the handshake a read never exceeds the pre-authentication frame limit
+            # (on TLS: one record, 16 KiB at most). On TLS it takes what the SSL object
+            # decrypted already: nothing stays where the loop's poll cannot see it.
+            data = _tls.recv(peer.sock, 262144 if peer.name else proto.PRE_AUTH_MAX_FRAME + 5)
+        except _tls.WOULD_BLOCK:
             return
         except OSError as exc:
             self._lost(peer, f"lost its connection ({exc})")
@@ -306,6 +333,12 @@ class ClockServer(Admission, Rounds, Routing, Services):
         except ProtocolError as exc:  # the framing is broken: nothing after it can be read
             if peer.name:
                 self._lost(peer, f"broke the protocol framing ({exc})")
+            elif data[0] == _tls.TLS_RECORD_HANDSHAKE and self._tls is None:
+                self._refuse(
+                    peer,
+                    f"a TLS client: this clock server serves plain {self._address.scheme}:// "
+                    "(join it with that scheme, or serve on tls://)",
+                )
             else:
                 self._refuse(peer, f"not an evclock clock client: {exc}")
             return
@@ -518,6 +551,8 @@ async def serve(
     max_frame: int = proto.MAX_FRAME,
     peer_uids: Iterable[int] | None = None,
     limits: Limits | None = None,
+    tls_cert: str | None = None,
+    tls_key: str | None = None,
 ) -> AsyncIterator[ClockServer]:
     """Serve the running :class:`~evclock.SimEventLoop`'s sim time while the block runs::
 
@@ -527,8 +562,9 @@ async def serve(
 
     :param address: ``unix:///path.sock`` (default: a per-process socket in the user's
         private directory, ``$XDG_RUNTIME_DIR/evclock`` or ``evclock-UID`` in the temp dir,
-        mode 0700) or ``tcp://127.0.0.1:PORT?token=...`` (port 0: any free port; see
-        :attr:`ClockServer.address`).
+        mode 0700), ``tcp://127.0.0.1:PORT?token=...`` (port 0: any free port; see
+        :attr:`ClockServer.address`), or ``tls://HOST:PORT?token=...`` (the same protocol
+        inside TLS 1.3, with ``tls_cert`` and ``tls_key``: between machines).
     :param on_fault: what a dead, stopped or silent lockstep participant causes: ``abort``
         (default: :class:`~evclock.remote.ParticipantLostError` naming it and what it last
         did is raised from this block),
@@ -539,10 +575,10 @@ async def serve(
         the policy applies (None: no limit of the server's own, so the loop's
         ``stall_timeout`` applies; a killed one is detected at once regardless).
     :param token: a shared secret both sides prove they know (HMAC challenge-response, it is
-        never sent); ``?token=`` in the participants' address. Required on TCP; a
-        non-loopback address also needs ``allow_remote``.
+        never sent); ``?token=`` in the participants' address. Required on TCP and TLS.
     :param info: JSON-serialisable facts given to every participant at join (scenario, seed).
-    :param allow_remote: allow serving on a non-loopback address (``tcp://0.0.0.0:PORT``).
+    :param allow_remote: allow serving on a non-loopback address (``tls://0.0.0.0:PORT``):
+        only on ``tls://``, with a token (plain TCP stays on this machine).
     :param max_frame: the largest frame in bytes a joined participant may send (default
         16 MiB; 4 KiB to 256 MiB); before the handshake completes the limit is 4 KiB.
     :param peer_uids: user ids that may join over a Unix socket (``SO_PEERCRED``; default:
@@ -550,6 +586,9 @@ async def serve(
     :param limits: what one participant may make the server hold: its round's publications,
         subscriptions and unsent output (default: :class:`~evclock.remote.Limits` ``()``, its
         documented defaults); a participant beyond one is a fault under ``on_fault``.
+    :param tls_cert: on ``tls://``: the server's certificate chain, a PEM file (participants
+        verify it with ``?tls_ca=`` or ``?tls_fingerprint=``).
+    :param tls_key: on ``tls://``: the certificate's private key, a PEM file.
     :returns: an async context manager yielding the :class:`ClockServer`.
     :raises InvalidTypeError: the running loop is not a :class:`~evclock.SimEventLoop`.
     :raises InvalidArgumentError: an invalid option or address (see :class:`ClockServer`).
@@ -572,6 +611,8 @@ async def serve(
         max_frame=max_frame,
         peer_uids=peer_uids,
         limits=limits,
+        tls_cert=tls_cert,
+        tls_key=tls_key,
     )
     owner = server._owner = asyncio.current_task()
     try:
