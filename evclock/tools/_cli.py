@@ -286,14 +286,23 @@ def run_command(
     serve: Annotated[
         str | None,
         typer.Option(
-            help="Serve this run's sim time at ADDR (unix:///path.sock, or tcp://HOST:PORT: "
-            "TCP always needs a token, from --token-file or EVCLOCK_TOKEN, else a fresh one "
-            "is written to a private file whose path is printed)."
+            help="Serve this run's sim time at ADDR (unix:///path.sock, tcp://HOST:PORT, or "
+            "tls://HOST:PORT with --tls-cert and --tls-key, between machines: TCP and TLS "
+            "always need a token, from --token-file or EVCLOCK_TOKEN, else a fresh one is "
+            "written to a private file whose path is printed)."
         ),
     ] = None,
     token_file: Annotated[
         Path | None,
         typer.Option(help=f"With --serve only. {TOKEN_FILE_HELP}"),
+    ] = None,
+    tls_cert: Annotated[
+        Path | None,
+        typer.Option(help="With --serve tls://...: the server's certificate chain (PEM)."),
+    ] = None,
+    tls_key: Annotated[
+        Path | None,
+        typer.Option(help="With --serve tls://...: the certificate's private key (PEM)."),
     ] = None,
     remote_controllers: Annotated[
         bool,
@@ -356,6 +365,8 @@ def run_command(
             raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
         if token_file is not None and serve is None:
             raise InvalidArgumentError("--token-file needs --serve ADDR (it is the clock's)")
+        if (tls_cert is not None or tls_key is not None) and serve is None:
+            raise InvalidArgumentError("--tls-cert and --tls-key need --serve tls://HOST:PORT")
         if serve is not None and values:
             raise InvalidArgumentError(
                 "--serve runs the scenario as registered: drop --param "
@@ -372,7 +383,7 @@ def run_command(
         recorded_before = file_identity(record)
         with _removed(written), progress_bar(None, quiet) as progress, live:
             if serve is not None:
-                report = _served(serve, remote_controllers)(
+                report = _served(serve, remote_controllers, tls_cert, tls_key)(
                     scenario,
                     token=token,
                     until=until,
@@ -450,10 +461,18 @@ def file_identity(path: Path | None) -> tuple[int, int, int] | None:
     return None if found is None else (found.st_ino, found.st_size, found.st_mtime_ns)
 
 
-def _served(address: str, remote_controllers: bool) -> Any:
+def _served(
+    address: str, remote_controllers: bool, tls_cert: Path | None, tls_key: Path | None
+) -> Any:
     from evclock.tools._cli_remote import serve_scenario
 
-    return functools.partial(serve_scenario, address=address, remote_controllers=remote_controllers)
+    return functools.partial(
+        serve_scenario,
+        address=address,
+        remote_controllers=remote_controllers,
+        tls_cert=None if tls_cert is None else str(tls_cert),
+        tls_key=None if tls_key is None else str(tls_key),
+    )
 
 
 def _register_remote() -> None:

@@ -92,11 +92,12 @@ def serve_token(address: str, token_file: Path | None) -> tuple[str | None, Path
     """The token ``evclock run --serve ADDR`` serves with, and the file it wrote it to.
 
     The token of ``--token-file`` or ``EVCLOCK_TOKEN`` if given (no file written); otherwise,
-    on TCP, a fresh 256-bit token written to a new 0600 file of the private directory (the
-    caller prints its path and removes the file when the run ends); on a Unix socket, none.
+    on TCP and TLS, a fresh 256-bit token written to a new 0600 file of the private directory
+    (the caller prints its path and removes the file when the run ends); on a Unix socket,
+    none.
     """
     token = cli_token(address, "--serve", token_file)
-    if token is not None or urllib.parse.urlsplit(address).scheme != "tcp":
+    if token is not None or urllib.parse.urlsplit(address).scheme not in ("tcp", "tls"):
         return token, None
     token = new_token()
     return token, write_token_file(token, f"sim-{os.getpid()}")
@@ -131,10 +132,13 @@ def serve_scenario(
     record: Path | None = None,
     engine: str = "pybullet",
     token: str | None = None,
+    tls_cert: str | None = None,
+    tls_key: str | None = None,
 ) -> RunReport:
     """Run scenario ``name`` serving its sim time at ``address`` (see the module docstring).
 
-    ``token``: the clock token participants must prove they know (needed on TCP).
+    ``token``: the clock token participants must prove they know (needed on TCP and TLS);
+    ``tls_cert`` and ``tls_key``: the certificate and key a ``tls://`` address serves with.
 
     ``record`` (and a live view, see :func:`evclock.tools._record.live_view`): the simulation
     writes the world's channels (state, joints, transforms, scene) and, when the controllers
@@ -188,7 +192,13 @@ def serve_scenario(
         if recorder is not None:
             recorder.attach(source, clk, scenario.state_vector)
         async with serve(
-            address, info=info, on_fault=on_fault, step_timeout=step_timeout, token=token
+            address,
+            info=info,
+            on_fault=on_fault,
+            step_timeout=step_timeout,
+            token=token,
+            tls_cert=tls_cert,
+            tls_key=tls_key,
         ) as server:
             if engine == "mujoco":
                 MjDataService(scenario.world.data).install(server)
@@ -346,30 +356,39 @@ def control_scenario(
     engine: str = "pybullet",
     token: str | None = None,
     policy: str | None = None,
+    tls_ca: str | None = None,
+    tls_fingerprint: str | None = None,
 ) -> RunReport:
     """Run scenario ``name``'s controllers against the simulation served at ``clock_url``
     (which must run the same scenario, seed and ``engine``), proving ``token`` if given;
     ``policy`` (a scenario's ``policy`` parameter: a trained policy, see ``evclock.gym``)
-    replaces its agent's controller."""
+    replaces its agent's controller; ``tls_ca`` or ``tls_fingerprint`` verify a ``tls://``
+    server (added to the address's query: neither is a secret)."""
     from evclock.tools._runs import RunReport, _loop_reports, _Outcome, scenario_class
     from evclock.tools._scenarios import require_engine
 
     scheme = urllib.parse.urlsplit(clock_url).scheme if isinstance(clock_url, str) else None
-    if scheme not in ("unix", "tcp"):
+    if scheme not in ("unix", "tcp", "tls"):
         raise InvalidArgumentError(
             f"evclock control joins a simulation served by `evclock run SIM --serve ADDR "
-            f"--remote-controllers` (unix:///path/sim.sock or tcp://127.0.0.1:PORT), got "
+            f"--remote-controllers` (unix:///path/sim.sock, tcp://127.0.0.1:PORT or "
+            f"tls://HOST:PORT), got "
             f"{clock_url!r}: only an evclock clock server runs the scenario's physics for its "
             "controllers in lockstep"
         )
+    verify = {"tls_ca": tls_ca, "tls_fingerprint": tls_fingerprint}
+    if any(value is not None for value in verify.values()):
+        given = {key: value for key, value in verify.items() if value is not None}
+        clock_url = f"{clock_url}{'&' if '?' in clock_url else '?'}{urllib.parse.urlencode(given)}"
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
     cls = scenario_class(name, {} if policy is None else {"policy": policy})
     require_engine(cls, engine)
     limit = _limit(cls, until)
     scenario = _private_copy(cls, seed, engine)
-    if parsed.scheme == "tcp" and token is None and parsed.token is None:
+    if parsed.scheme in ("tcp", "tls") and token is None and parsed.token is None:
         raise InvalidArgumentError(
-            f"joining the simulation at {parsed} over tcp needs its token: pass the file "
+            f"joining the simulation at {parsed} over {parsed.scheme} needs its token: pass "
+            "the file "
             f"`evclock run --serve` printed with --token-file PATH, or set {ENV_TOKEN}"
         )
 
@@ -457,6 +476,14 @@ def control_command(
             "evclock.gym.LinearPolicy or module:callable (the scenario's policy parameter)."
         ),
     ] = None,
+    tls_ca: Annotated[
+        Path | None,
+        typer.Option(help="--clock tls://...: the CA file (PEM) that signed its certificate."),
+    ] = None,
+    tls_fingerprint: Annotated[
+        str | None,
+        typer.Option(help="--clock tls://...: the SHA-256 fingerprint of its certificate."),
+    ] = None,
 ) -> None:
     """Run a scenario's controllers in lockstep with a simulation served by another process
     (`evclock run SIM --serve ADDR --remote-controllers`; one started without
@@ -485,6 +512,8 @@ def control_command(
             engine=engine,
             token=token,
             policy=policy,
+            tls_ca=None if tls_ca is None else str(tls_ca),
+            tls_fingerprint=tls_fingerprint,
         )
     except EvClockError as exc:
         print_error(exc)
