@@ -1,20 +1,32 @@
-"""Fuzzing the clock server: an authenticated participant sends random and mutated frames.
+"""Fuzzing both sides of the clock server's protocol.
 
-Hypothesis makes the frames; a real participant process sends them over a real socket
-while two honest lockstep participants and the simulation exchange data and calls. The
-simulation must neither crash nor hang, every frame of a kind a participant never sends
-is answered with an ERROR naming it, and the honest participants' runs and the
-simulation's record stay bit-identical to a run without the fuzzer.
+* An authenticated participant sends random, mutated and large frames: Hypothesis makes
+  them; a real participant process sends them over a real socket while two honest lockstep
+  participants and the simulation exchange data and calls. The simulation must neither
+  crash nor hang, every frame of a kind a participant never sends is answered with an ERROR
+  naming it, its peak memory stays bounded, and the honest participants' runs and the
+  simulation's record stay bit-identical to a run without the fuzzer.
+* Clients without the token drive the handshake (HELLOs, guessed PROOFs, junk, frames cut
+  short) against the real server during an honest run: none is ever welcomed, the honest
+  run stays bit-identical.
+* An impostor server (a real process) answers a real participant's HELLO with anything
+  (WELCOME, GRANT, a guessed CHALLENGE, REFUSE, junk, nothing): the participant, which has
+  a token, fails with a clear error and sends it nothing after the HELLO.
+
+Every property runs a few derandomized examples (Hypothesis' ``derandomize``): the same
+cases every run, a few tens of seconds in all.
 """
 
 from __future__ import annotations
 
+import asyncio
 import json
+import socket
 from pathlib import Path
 from typing import Any
 
 import pytest
-from _remote_helpers import finish, spawn
+from _remote_helpers import finish, read_line, spawn
 
 import evclock
 from evclock.remote import _protocol as proto
@@ -45,12 +57,14 @@ async def main():
 evclock.run(main())
 """
 
-#: Joins by hand (the handshake with the token), sends the frames in argv[2] (a JSON
-#: list of hex strings) one by one, answering grants meanwhile, finishes its step, leaves.
+#: Joins by hand (the handshake with the token), sends the frames in the file argv[2] (a
+#: JSON list of hex strings) one by one, answering grants meanwhile, finishes its step, leaves.
 FUZZER = """
 import json, os, select, socket, sys, time
 from evclock.remote import _protocol as proto
-path, frames, mode = sys.argv[1], json.loads(sys.argv[2]), int(sys.argv[3])
+path, mode = sys.argv[1], int(sys.argv[3])
+with open(sys.argv[2]) as listing:
+    frames = json.load(listing)
 sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
 deadline = time.monotonic() + 30
 while True:
@@ -166,7 +180,34 @@ def mutated(draw: st.DrawFn) -> bytes:
 random_frames = st.builds(
     _frame, st.integers(0, 255).filter(lambda k: k != proto.BYE), st.binary(max_size=40)
 )
-frames = st.lists(st.one_of(valid_frames, mutated(), random_frames), min_size=1, max_size=25)
+#: Frames of up to 256 KiB: what the simulation holds of them while it handles them.
+big_frames = st.one_of(
+    st.builds(lambda n, t: proto.publish(t, "big", b"\xa5" * n), st.integers(0, 1 << 18), times),
+    st.builds(lambda n: proto.call(9, "double", b"7" * n), st.integers(0, 1 << 18)),
+)
+frames = st.lists(
+    st.one_of(valid_frames, mutated(), random_frames, big_frames), min_size=1, max_size=25
+)
+#: What the simulation's process may grow by (peak resident memory) while a fuzzer sends
+#: at most 25 frames of at most 256 KiB (6.25 MiB): a generous bound, far below a leak's.
+MAX_GROWTH = 48 * 1024 * 1024
+
+
+def _reset_peak_memory() -> None:
+    """Start this process's peak resident memory (VmHWM) again from its current size."""
+    Path("/proc/self/clear_refs").write_text("5")
+
+
+def _memory() -> dict[str, int]:
+    """This process's resident memory now and at its peak (bytes)."""
+    fields = dict(line.split(":", 1) for line in Path("/proc/self/status").read_text().splitlines())
+    return {key: int(fields[key].split()[0]) * 1024 for key in ("VmRSS", "VmHWM")}
+
+
+def _write_frames(folder: Path, frames: list[bytes]) -> str:
+    listing = folder / f"frames-{len(list(folder.glob('frames-*')))}.json"
+    listing.write_text(json.dumps([frame.hex() for frame in frames]))
+    return str(listing)
 
 
 def _kind(frame: bytes) -> int:
@@ -191,11 +232,13 @@ def run_simulation(tmp_path: Path, fuzz: list[bytes] | None, mode: int) -> list[
                     lambda m: record.append([m.sender, m.topic, m.time.nanoseconds, m.data.hex()]),
                 )
             if fuzz is not None:
+                _reset_peak_memory()
+                memory.append(_memory())
                 fuzzer = spawn(
                     tmp_path,
                     FUZZER,
                     url.removeprefix("unix://"),
-                    json.dumps([frame.hex() for frame in fuzz]),
+                    _write_frames(tmp_path, fuzz),
                     str(mode),
                     TOKEN=TOKEN,
                 )
@@ -214,8 +257,14 @@ def run_simulation(tmp_path: Path, fuzz: list[bytes] | None, mode: int) -> list[
                 await server.wait_for_participants(me, timeout=30)
             await server.wait_until_left("a", "b")
             record.append(["end", clock.now().nanoseconds])
+            if fuzz is not None:
+                memory.append(_memory())
 
+    memory: list[dict[str, int]] = []
     evclock.run(main())
+    if fuzz is not None:  # the server's memory, while the fuzzer was at it
+        before, after = memory
+        assert after["VmHWM"] - before["VmRSS"] < MAX_GROWTH, (before, after)
     outputs: list[object] = []
     for proc in honest:
         code, out, err = finish(proc)
@@ -266,7 +315,7 @@ def test_the_fuzzer_is_heard(tmp_path: Path) -> None:
                 tmp_path,
                 FUZZER,
                 url.removeprefix("unix://"),
-                json.dumps([f.hex() for f in frames]),
+                _write_frames(tmp_path, frames),
                 str(proto.MODE_FOLLOW),
                 TOKEN=TOKEN,
             )
@@ -277,3 +326,256 @@ def test_the_fuzzer_is_heard(tmp_path: Path) -> None:
         return out
 
     assert evclock.run(main()).splitlines() == ["joined", f"[{ord('Q')}]"]
+
+
+# ------------------------------------------------------------------ the handshake, client side
+
+#: Opens one connection per attempt in argv[2] (a JSON list of hex byte strings: what an
+#: unauthenticated client sends first), reads what the server answers (briefly: a stalled
+#: handshake is the server's to end) and prints, per attempt, the kinds of frames it got.
+HANDSHAKER = """
+import json, socket, sys, time
+from evclock.remote import _protocol as proto
+path, attempts = sys.argv[1], json.loads(sys.argv[2])
+answers = []
+for attempt in attempts:
+    sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    deadline = time.monotonic() + 30
+    while True:
+        try:
+            sock.connect(path)
+            break
+        except (FileNotFoundError, ConnectionRefusedError):
+            assert time.monotonic() < deadline, "no server"
+            time.sleep(0.02)
+    try:
+        sock.sendall(bytes.fromhex(attempt))
+    except OSError:
+        pass  # refused at once (its answer is still readable)
+    sock.settimeout(0.3)
+    data = b""
+    try:
+        while chunk := sock.recv(65536):
+            data += chunk
+    except (TimeoutError, OSError):
+        pass
+    sock.close()
+    kinds, pos = [], 0
+    while len(data) - pos >= 5:
+        length = int.from_bytes(data[pos:pos + 4], "little")
+        kinds.append(data[pos + 4])
+        pos += 4 + length
+    answers.append(kinds)
+print(json.dumps(answers), flush=True)
+"""
+
+nonces = st.binary(min_size=32, max_size=32)
+hellos = st.builds(
+    proto.hello, st.sampled_from([proto.MODE_LOCKSTEP, proto.MODE_FOLLOW, 7]), names, nonces
+)
+first_frames = st.one_of(
+    hellos,
+    st.builds(proto.hello, st.just(proto.MODE_LOCKSTEP), names, nonces, st.integers(0, 65535)),
+    st.builds(proto.proof, st.binary(max_size=40)),
+    valid_frames,
+    mutated(),
+    random_frames,
+)
+#: What a client without the token sends first: frames (a HELLO and a guessed PROOF among
+#: them), raw bytes, a frame cut short.
+attempts = st.one_of(
+    st.lists(first_frames, min_size=1, max_size=4).map(b"".join),
+    st.tuples(hellos, st.builds(proto.proof, st.binary(min_size=32, max_size=32))).map(b"".join),
+    st.binary(min_size=1, max_size=64),
+    first_frames.flatmap(lambda f: st.integers(1, len(f) - 1).map(lambda n: f[:n])),
+)
+
+
+def run_with_handshakes(tmp_path: Path, tries: list[bytes]) -> tuple[list[object], Any]:
+    """The simulation with the honest participants while unauthenticated clients try
+    ``tries``: what the simulation and the honest participants saw, and the answers."""
+    url = f"unix://{tmp_path / 'sim.sock'}"
+    honest: list[Any] = []
+    record: list[object] = []
+    joined: list[tuple[str, ...]] = []
+    client = spawn(
+        tmp_path, HANDSHAKER, url.removeprefix("unix://"), json.dumps([t.hex() for t in tries])
+    )
+    tried: list[tuple[int, str, str]] = []
+
+    async def main() -> None:
+        loop = asyncio.get_running_loop()
+        clock = evclock.clock()
+        async with evclock.remote.serve(url, token=TOKEN, step_timeout=20) as server:
+            server.provide("double", lambda data: str(2 * int(data)).encode())
+            for topic in ("tick.a", "tick.b"):
+                server.subscribe(
+                    topic,
+                    lambda m: record.append([m.sender, m.topic, m.time.nanoseconds, m.data.hex()]),
+                )
+            for me, other, step in (("a", "b", "0.001"), ("b", "a", "0.0015")):
+                honest.append(
+                    spawn(
+                        tmp_path,
+                        HONEST,
+                        me,
+                        other,
+                        step,
+                        EVCLOCK_CLOCK=f"{url}?name={me}&token={TOKEN}",
+                    )
+                )
+                await server.wait_for_participants(me, timeout=30)
+            await server.wait_until_left("a", "b")
+            record.append(["end", clock.now().nanoseconds])
+            # Served until the client has made every attempt.
+            tried.append(await loop.run_in_executor(None, finish, client))
+            joined.append(server.participants)
+
+    evclock.run(main())
+    outputs = []
+    for proc in honest:
+        code, out, err = finish(proc)
+        assert code == 0, err
+        outputs.append(json.loads(out))
+    ((code, out, err),) = tried
+    assert code == 0, err
+    assert joined == [()]  # nobody but the honest two ever joined
+    return [record, outputs], json.loads(out)
+
+
+@hypothesis.settings(
+    max_examples=3,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=list(hypothesis.HealthCheck),
+)
+@hypothesis.given(tries=st.lists(attempts, min_size=8, max_size=8))
+def test_handshakes_without_the_token_never_join_nor_change_an_honest_run(
+    tmp_path_factory: pytest.TempPathFactory, baseline: list[object], tries: list[bytes]
+) -> None:
+    seen, answers = run_with_handshakes(tmp_path_factory.mktemp("handshake"), tries)
+    assert seen == baseline
+    assert len(answers) == len(tries)
+    for attempt, kinds in zip(tries, answers, strict=True):
+        # A CHALLENGE (to a HELLO), then at most a REFUSE: never a WELCOME, nothing else.
+        assert proto.WELCOME not in kinds, attempt.hex()
+        assert set(kinds) <= {proto.CHALLENGE, proto.REFUSE}, (attempt.hex(), kinds)
+
+
+# ------------------------------------------------------------------ an impostor server
+
+#: A fake server (a real process): it reads each connection's HELLO and answers it with the
+#: bytes argv[2] gives for the name in that HELLO (p0, p1, ...), then records every byte the
+#: participant sends after its HELLO; a HELLO named "stop" makes it print those counts per
+#: name and end.
+IMPOSTOR = """
+import json, socket, sys, threading
+from evclock.remote import _protocol as proto
+path, answers = sys.argv[1], [bytes.fromhex(a) for a in json.loads(sys.argv[2])]
+after_hello = {}
+lock = threading.Lock()
+def serve(conn):
+    reader = proto.Reader(proto.MAX_FRAME_LIMIT)
+    frames = []
+    conn.settimeout(30)
+    try:
+        while not frames:
+            chunk = conn.recv(65536)
+            if not chunk:
+                return
+            frames = reader.feed(chunk)
+        kind, payload = frames[0]
+        name = proto.parse_hello(payload)[2]
+        if name == "stop":
+            with lock:
+                print(json.dumps(after_hello), flush=True)
+            done.set()
+            return
+        rest = sum(5 + len(p) for _, p in frames[1:]) + len(reader.pending)
+        answer = answers[int(name[1:])]
+        if answer:
+            conn.sendall(answer)
+        while chunk := conn.recv(65536):
+            rest += len(chunk)
+    except OSError:
+        pass
+    finally:
+        conn.close()
+    with lock:
+        after_hello[name] = after_hello.get(name, 0) + rest
+listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+listener.bind(path)
+listener.listen(16)
+print("ready", flush=True)
+def accept():
+    while True:
+        try:
+            conn, _ = listener.accept()
+        except OSError:
+            return
+        threading.Thread(target=serve, args=(conn,), daemon=True).start()
+done = threading.Event()
+threading.Thread(target=accept, daemon=True).start()
+done.wait(120)
+"""
+
+server_frames = st.one_of(
+    st.builds(proto.welcome, times, st.integers(0, 2**32 - 1), st.binary(max_size=16)),
+    st.builds(proto.grant, times),
+    st.builds(proto.time_frame, times),
+    st.builds(proto.challenge, nonces, st.binary(max_size=40)),
+    st.builds(
+        proto.refuse,
+        st.text(max_size=20),
+        st.sampled_from([proto.REFUSE_FINAL, proto.REFUSE_BUSY, 9]),
+    ),
+    st.builds(proto.error, st.integers(0, 255), st.text(max_size=20)),
+    st.builds(proto.closing, st.text(max_size=20)),
+    st.builds(proto.deliver, times, names, names, st.binary(max_size=16)),
+    st.builds(proto.reply, st.integers(0, 2**32 - 1), st.booleans(), st.binary(max_size=8)),
+    st.builds(proto.jump, st.integers(0, 2**32 - 1), times, times),
+    random_frames,
+)
+#: What an impostor answers a HELLO with: frames (a WELCOME, a GRANT, a guessed CHALLENGE,
+#: a REFUSE...), raw bytes, a frame cut short, or nothing (it closes).
+server_answers = st.one_of(
+    st.lists(server_frames, min_size=1, max_size=3).map(b"".join),
+    st.binary(max_size=48),
+    server_frames.flatmap(lambda f: st.integers(1, len(f) - 1).map(lambda n: f[:n])),
+)
+
+
+@hypothesis.settings(
+    max_examples=3,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=list(hypothesis.HealthCheck),
+)
+@hypothesis.given(answers=st.lists(server_answers, min_size=6, max_size=6))
+def test_a_participant_with_a_token_tells_an_impostor_nothing(
+    tmp_path_factory: pytest.TempPathFactory, answers: list[bytes]
+) -> None:
+    from evclock.remote._participant import RemoteClockSource
+
+    folder = tmp_path_factory.mktemp("impostor")
+    path = folder / "impostor.sock"
+    impostor = spawn(folder, IMPOSTOR, str(path), json.dumps([a.hex() for a in answers]))
+    try:
+        assert read_line(impostor) == "ready\n"
+        failures = []
+        for i in range(len(answers)):
+            url = f"unix://{path}?name=p{i}&token={TOKEN}&timeout=0.5"
+            with pytest.raises(evclock.EvClockError) as failed:
+                RemoteClockSource(url)
+            failures.append(type(failed.value).__name__)
+    finally:
+        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as stop:
+            stop.connect(str(path))
+            stop.sendall(proto.hello(proto.MODE_LOCKSTEP, "stop", proto.new_nonce()))
+    code, out, err = finish(impostor)
+    assert code == 0, err
+    # Not one byte after the HELLO (no PROOF, no data), whatever the impostor answered.
+    assert set(json.loads(out).values()) <= {0}, out
+    assert set(failures) <= {"JoinRefusedError", "ClockLostError", "ProtocolError"}, failures
