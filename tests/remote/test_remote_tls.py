@@ -399,3 +399,43 @@ def test_a_tls_participant_needs_a_way_to_verify_the_server(certs: Certs) -> Non
     parsed = parse_address(f"tls://[::1]:7411?tls_fingerprint={certs.fingerprint}")
     assert str(parsed) == "tls://[::1]:7411"
     assert parsed.tls_fingerprint == bytes.fromhex(certs.fingerprint.replace(":", ""))
+
+
+def test_a_read_takes_what_the_ssl_object_decrypted_already(certs: Certs) -> None:
+    # A TLS record is decrypted whole: what a short read leaves waits in the SSL object,
+    # where a poll of the socket does not see it. The transport's reads take it all.
+    import select
+    import socket
+    import threading
+
+    from evclock.remote._tls import client_context, recv, server_context
+
+    server_side, client_side = socket.socketpair()
+    context = server_context(str(certs.cert), str(certs.key))
+    wrapped: list[ssl.SSLSocket] = []
+    handshake = threading.Thread(
+        target=lambda: wrapped.append(context.wrap_socket(server_side, server_side=True))
+    )
+    handshake.start()
+    client = client_context(str(certs.ca), None).wrap_socket(
+        client_side, server_hostname="127.0.0.1"
+    )
+    handshake.join(30)
+    (server,) = wrapped
+    try:
+        for reader in ("sock.recv", "recv"):
+            client.sendall(b"a" * 5000 + b"b" * 5000)  # one record of 10,000 bytes
+            poller = select.poll()
+            poller.register(server, select.POLLIN)
+            assert poller.poll(10_000)
+            if reader == "sock.recv":
+                first = server.recv(100)
+                assert (len(first), server.pending()) == (100, 9900)
+                assert poller.poll(0) == []  # the rest is there, but the socket is quiet
+                server.recv(9900)
+            else:
+                assert recv(server, 100) == b"a" * 5000 + b"b" * 5000
+                assert server.pending() == 0
+    finally:
+        client.close()
+        server.close()
