@@ -439,3 +439,75 @@ def test_a_read_takes_what_the_ssl_object_decrypted_already(certs: Certs) -> Non
     finally:
         client.close()
         server.close()
+
+
+# A relay on the path (a real process): forwards a connection both ways and keeps a copy of
+# every byte that crossed it, as anyone on the network between two machines could.
+RELAY = """
+import socket, sys, threading
+target, capture = int(sys.argv[1]), sys.argv[2]
+listener = socket.socket()
+listener.bind(("127.0.0.1", 0))
+listener.listen(1)
+listener.settimeout(60)
+print(listener.getsockname()[1], flush=True)
+near, _ = listener.accept()
+far = socket.create_connection(("127.0.0.1", target))
+seen = []
+def pump(source, sink):
+    while data := source.recv(65536):
+        seen.append(data)
+        sink.sendall(data)
+    sink.shutdown(socket.SHUT_WR)
+threads = [threading.Thread(target=pump, args=pair) for pair in ((near, far), (far, near))]
+for thread in threads:
+    thread.start()
+for thread in threads:
+    thread.join(60)
+with open(capture, "wb") as out:
+    out.write(b"".join(seen))
+"""
+
+SECRETIVE = """
+import evclock
+async def main():
+    link = evclock.remote.participant()
+    await evclock.clock().sleep(0.001)
+    link.publish("private.topic", b"evclock-private-payload")
+evclock.run(main())
+"""
+
+
+@pytest.mark.parametrize("scheme", ["tcp", "tls"])
+def test_someone_on_the_path_sees_nothing_of_a_tls_session(
+    tmp_path: Path, certs: Certs, scheme: str
+) -> None:
+    capture = tmp_path / f"{scheme}.bin"
+    received: list[bytes] = []
+
+    async def main() -> None:
+        tls = {"tls_cert": str(certs.cert), "tls_key": str(certs.key)} if scheme == "tls" else {}
+        async with evclock.remote.serve(f"{scheme}://127.0.0.1:0", token=TOKEN, **tls) as server:
+            server.subscribe("private.topic", lambda m: received.append(m.data))
+            port = int(server.address.rsplit(":", 1)[1])
+            relay = spawn(tmp_path, RELAY, str(port), str(capture))
+            loop = asyncio.get_running_loop()
+            relay_port = int(await loop.run_in_executor(None, read_line, relay))
+            verify = f"&tls_ca={certs.ca}" if scheme == "tls" else ""
+            url = f"{scheme}://127.0.0.1:{relay_port}?token={TOKEN}&name=secret-name{verify}"
+            proc = spawn(tmp_path, SECRETIVE, EVCLOCK_CLOCK=url)
+            await server.wait_for_participants("secret-name", timeout=30)
+            await server.wait_until_left()
+            code, _, err = await loop.run_in_executor(None, finish, proc)
+            assert code == 0, err
+        code, _, err = finish(relay)
+        assert code == 0, err
+
+    evclock.run(main())
+    assert received == [b"evclock-private-payload"]
+    wire = capture.read_bytes()
+    assert len(wire) > 100
+    words = [b"evclock-private-payload", b"private.topic", b"secret-name", b"EVCLK"]
+    # Plain TCP shows the data, the topic, the name and the protocol; TLS none of them.
+    assert [word for word in words if word in wire] == ([] if scheme == "tls" else words)
+    assert TOKEN.encode() not in wire  # neither shows the token
