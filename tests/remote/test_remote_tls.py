@@ -511,3 +511,33 @@ def test_someone_on_the_path_sees_nothing_of_a_tls_session(
     # Plain TCP shows the data, the topic, the name and the protocol; TLS none of them.
     assert [word for word in words if word in wire] == ([] if scheme == "tls" else words)
     assert TOKEN.encode() not in wire  # neither shows the token
+
+
+FOLLOWER = """
+import json, evclock
+async def main():
+    clock = evclock.clock()
+    seen = []
+    for _ in range(3):
+        await clock.sleep(0.010)
+        seen.append(clock.now().nanoseconds)
+    print(json.dumps(seen))
+evclock.run(main())
+"""
+
+
+def test_a_follower_follows_over_tls(tmp_path: Path, certs: Certs) -> None:
+    async def main() -> tuple[int, str, str]:
+        loop = asyncio.get_running_loop()
+        async with evclock.remote.serve(
+            "tls://127.0.0.1:0", token=TOKEN, tls_cert=str(certs.cert), tls_key=str(certs.key)
+        ) as server:
+            url = f"{server.address}?token={TOKEN}&tls_ca={certs.ca}&name=watcher&mode=follow"
+            proc = spawn(tmp_path, FOLLOWER, EVCLOCK_CLOCK=url)
+            await server.wait_for_participants("watcher", timeout=30)
+            await server.wait_until_left()
+            return await loop.run_in_executor(None, finish, proc)
+
+    code, out, err = evclock.run(main())
+    assert code == 0, err
+    assert json.loads(out) == [10_000_000, 20_000_000, 30_000_000]
