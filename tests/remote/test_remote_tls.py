@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _remote_helpers import finish, read_line, spawn
+from _remote_helpers import ROOT, finish, read_line, spawn
 
 import evclock
 from evclock.remote._address import parse_address
@@ -541,3 +541,62 @@ def test_a_follower_follows_over_tls(tmp_path: Path, certs: Certs) -> None:
     code, out, err = evclock.run(main())
     assert code == 0, err
     assert json.loads(out) == [10_000_000, 20_000_000, 30_000_000]
+
+
+def test_a_split_run_over_tls_on_the_command_line_ends_bit_identical(
+    tmp_path: Path, certs: Certs
+) -> None:
+    # evclock run --serve tls://... with its certificate, evclock control verifying it (the
+    # token from a file on both ends): the same run as in one process, bit for bit (MuJoCo:
+    # on every Python).
+    import subprocess
+
+    from _without_pybullet import CLI_WITHOUT_PYBULLET
+
+    from evclock.tools._cli import run_scenario
+
+    def cli(*args: str) -> subprocess.Popen[str]:
+        return subprocess.Popen(
+            [*CLI_WITHOUT_PYBULLET, *args, "--engine", "mujoco", "--quiet", "--seed", "3"],
+            cwd=ROOT,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+
+    address = f"tls://127.0.0.1:{_free_port()}"
+    token_file = tmp_path / "token"
+    token_file.write_text(TOKEN)
+    token_file.chmod(0o600)
+    server = cli(
+        "run", "cartpole", "--until", "1", "--serve", address, "--remote-controllers",
+        "--tls-cert", str(certs.cert), "--tls-key", str(certs.key),
+        "--token-file", str(token_file), "--json", str(tmp_path / "sim.json"),
+    )  # fmt: skip
+    controllers = cli(
+        "control", "cartpole", "--until", "1", "--clock", address, "--token-file",
+        str(token_file), "--tls-fingerprint", certs.fingerprint,
+        "--json", str(tmp_path / "controllers.json"),
+    )  # fmt: skip
+    ctrl_code, _, ctrl_err = finish(controllers)
+    sim_code, _, sim_err = finish(server)
+    assert (sim_code, ctrl_code) == (3, 3), sim_err + ctrl_err  # cut short by --until
+    in_process = run_scenario("cartpole", until=1.0, seed=3, rtf=None, engine="mujoco").to_json()
+    served = json.loads((tmp_path / "sim.json").read_text())
+    joined = json.loads((tmp_path / "controllers.json").read_text())
+    assert served["final_state"] == joined["final_state"] == in_process["final_state"]
+    assert served["sim_time_s"] == joined["sim_time_s"] == in_process["sim_time_s"]
+    assert served["summary"] == in_process["summary"]
+
+
+def test_serving_tls_on_the_command_line_without_a_token_makes_one(tmp_path: Path) -> None:
+    from evclock.tools._cli_remote import serve_token
+
+    token, written = serve_token("tls://127.0.0.1:7411", None)
+    assert written is not None
+    try:
+        assert written.read_text().strip() == token
+        assert written.stat().st_mode & 0o777 == 0o600
+    finally:
+        written.unlink()
+    assert serve_token(f"unix://{tmp_path / 'sim.sock'}", None) == (None, None)
