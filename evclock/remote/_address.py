@@ -181,6 +181,29 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
     )
 
 
+def with_verification(address: Address, tls_ca: str | None, tls_fingerprint: str | None) -> Address:
+    """``address`` with the CA file or the fingerprint that verify its ``tls://`` server
+    (given to the participant besides its address; they override the query's)."""
+    if tls_ca is None and tls_fingerprint is None:
+        return address
+    if address.scheme != "tls":
+        raise InvalidArgumentError(
+            f"tls_ca and tls_fingerprint verify a tls:// server, not {address}"
+        )
+    if tls_ca is not None:
+        if not isinstance(tls_ca, str):
+            raise InvalidTypeError(f"tls_ca is a file path, got {type(tls_ca).__name__}")
+        address = dataclasses.replace(address, tls_ca=tls_ca)
+    if tls_fingerprint is not None:
+        if not isinstance(tls_fingerprint, str):
+            raise InvalidTypeError(
+                f"tls_fingerprint is a hex string, got {type(tls_fingerprint).__name__}"
+            )
+        fingerprint = _tls.parse_fingerprint(tls_fingerprint)
+        address = dataclasses.replace(address, tls_fingerprint=fingerprint)
+    return address
+
+
 def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
     """A non-blocking listening socket for ``address``.
 

@@ -14,7 +14,6 @@ pending sleeps raise ``ClockJumpedError``, asyncio timers keep their remaining d
 from __future__ import annotations
 
 import contextlib
-import dataclasses
 import hmac
 import itertools
 import json
@@ -39,7 +38,13 @@ from evclock._errors import (
 from evclock.kernel._source import Gate
 from evclock.remote import _protocol as proto
 from evclock.remote import _tls
-from evclock.remote._address import Address, connect, parse_address, peer_credentials
+from evclock.remote._address import (
+    Address,
+    connect,
+    parse_address,
+    peer_credentials,
+    with_verification,
+)
 from evclock.remote._routing import Message
 from evclock.remote._token import check_token
 from evclock.sources import TimeSource
@@ -115,20 +120,7 @@ class RemoteClockSource(TimeSource):
         addr = address if isinstance(address, Address) else parse_address(address)
         if addr.token is not None:
             check_token(addr.token)  # before anything is sent: a weak one is refused here too
-        if tls_ca is not None or tls_fingerprint is not None:
-            if addr.scheme != "tls":
-                raise InvalidArgumentError(
-                    f"tls_ca and tls_fingerprint verify a tls:// server, not {addr}"
-                )
-            if tls_ca is not None:
-                addr = dataclasses.replace(addr, tls_ca=tls_ca)
-            if tls_fingerprint is not None:
-                if not isinstance(tls_fingerprint, str):
-                    raise InvalidTypeError(
-                        f"tls_fingerprint is a hex string, got {type(tls_fingerprint).__name__}"
-                    )
-                fingerprint = _tls.parse_fingerprint(tls_fingerprint)
-                addr = dataclasses.replace(addr, tls_fingerprint=fingerprint)
+        addr = with_verification(addr, tls_ca, tls_fingerprint)
         self._address = addr
         self._loop: Any = None  # the SimEventLoop this source drives (set by attach)
         self.name = addr.name or _default_name()
