@@ -304,6 +304,13 @@ def run_command(
         Path | None,
         typer.Option(help="With --serve tls://...: the certificate's private key (PEM)."),
     ] = None,
+    allow_remote: Annotated[
+        bool,
+        typer.Option(
+            help="With --serve tls://...: listen beyond loopback (e.g. tls://0.0.0.0:PORT), "
+            "for participants on other machines."
+        ),
+    ] = False,
     remote_controllers: Annotated[
         bool,
         typer.Option(help="With --serve: physics only; `evclock control` runs the controllers."),
@@ -365,8 +372,10 @@ def run_command(
             raise InvalidArgumentError("--remote-controllers needs --serve ADDR")
         if token_file is not None and serve is None:
             raise InvalidArgumentError("--token-file needs --serve ADDR (it is the clock's)")
-        if (tls_cert is not None or tls_key is not None) and serve is None:
-            raise InvalidArgumentError("--tls-cert and --tls-key need --serve tls://HOST:PORT")
+        if (tls_cert is not None or tls_key is not None or allow_remote) and serve is None:
+            raise InvalidArgumentError(
+                "--tls-cert, --tls-key and --allow-remote need --serve tls://HOST:PORT"
+            )
         if serve is not None and values:
             raise InvalidArgumentError(
                 "--serve runs the scenario as registered: drop --param "
@@ -383,7 +392,7 @@ def run_command(
         recorded_before = file_identity(record)
         with _removed(written), progress_bar(None, quiet) as progress, live:
             if serve is not None:
-                report = _served(serve, remote_controllers, tls_cert, tls_key)(
+                report = _served(serve, remote_controllers, tls_cert, tls_key, allow_remote)(
                     scenario,
                     token=token,
                     until=until,
@@ -462,7 +471,11 @@ def file_identity(path: Path | None) -> tuple[int, int, int] | None:
 
 
 def _served(
-    address: str, remote_controllers: bool, tls_cert: Path | None, tls_key: Path | None
+    address: str,
+    remote_controllers: bool,
+    tls_cert: Path | None,
+    tls_key: Path | None,
+    allow_remote: bool,
 ) -> Any:
     from evclock.tools._cli_remote import serve_scenario
 
@@ -472,6 +485,7 @@ def _served(
         remote_controllers=remote_controllers,
         tls_cert=None if tls_cert is None else str(tls_cert),
         tls_key=None if tls_key is None else str(tls_key),
+        allow_remote=allow_remote,
     )
 
 

@@ -134,11 +134,13 @@ def serve_scenario(
     token: str | None = None,
     tls_cert: str | None = None,
     tls_key: str | None = None,
+    allow_remote: bool = False,
 ) -> RunReport:
     """Run scenario ``name`` serving its sim time at ``address`` (see the module docstring).
 
     ``token``: the clock token participants must prove they know (needed on TCP and TLS);
-    ``tls_cert`` and ``tls_key``: the certificate and key a ``tls://`` address serves with.
+    ``tls_cert`` and ``tls_key``: the certificate and key a ``tls://`` address serves with;
+    ``allow_remote``: listen beyond loopback (``tls://`` only, see ``serve()``).
 
     ``record`` (and a live view, see :func:`evclock.tools._record.live_view`): the simulation
     writes the world's channels (state, joints, transforms, scene) and, when the controllers
@@ -199,6 +201,7 @@ def serve_scenario(
             token=token,
             tls_cert=tls_cert,
             tls_key=tls_key,
+            allow_remote=allow_remote,
         ) as server:
             if engine == "mujoco":
                 MjDataService(scenario.world.data).install(server)

@@ -546,9 +546,9 @@ def test_a_follower_follows_over_tls(tmp_path: Path, certs: Certs) -> None:
 def test_a_split_run_over_tls_on_the_command_line_ends_bit_identical(
     tmp_path: Path, certs: Certs
 ) -> None:
-    # evclock run --serve tls://... with its certificate, evclock control verifying it (the
-    # token from a file on both ends): the same run as in one process, bit for bit (MuJoCo:
-    # on every Python).
+    # evclock run --serve tls://0.0.0.0:PORT --allow-remote with its certificate (every
+    # interface, reached here on 127.0.0.1), evclock control verifying it (the token from a
+    # file on both ends): the same run as in one process, bit for bit (MuJoCo: every Python).
     import subprocess
 
     from _without_pybullet import CLI_WITHOUT_PYBULLET
@@ -564,13 +564,14 @@ def test_a_split_run_over_tls_on_the_command_line_ends_bit_identical(
             text=True,
         )
 
-    address = f"tls://127.0.0.1:{_free_port()}"
+    port = _free_port()
+    address = f"tls://127.0.0.1:{port}"
     token_file = tmp_path / "token"
     token_file.write_text(TOKEN)
     token_file.chmod(0o600)
     server = cli(
-        "run", "cartpole", "--until", "1", "--serve", address, "--remote-controllers",
-        "--tls-cert", str(certs.cert), "--tls-key", str(certs.key),
+        "run", "cartpole", "--until", "1", "--serve", f"tls://0.0.0.0:{port}", "--allow-remote",
+        "--remote-controllers", "--tls-cert", str(certs.cert), "--tls-key", str(certs.key),
         "--token-file", str(token_file), "--json", str(tmp_path / "sim.json"),
     )  # fmt: skip
     controllers = cli(

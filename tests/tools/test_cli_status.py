@@ -107,7 +107,10 @@ USAGE_ERRORS = [
     (["--param", "dwell=1,2"], "error: evclock run takes one value per --param (dwell)"),
     (["--sede", "1"], "error: No such option: --sede (Possible options: --seed"),
     (["--remote-controllers"], "error: --remote-controllers needs --serve ADDR"),
-    (["--tls-cert", "c.pem"], "error: --tls-cert and --tls-key need --serve tls://HOST:PORT"),
+    (
+        ["--tls-cert", "c.pem"],
+        "error: --tls-cert, --tls-key and --allow-remote need --serve tls://",
+    ),
 ]
 
 
