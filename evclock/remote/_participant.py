@@ -45,6 +45,7 @@ from evclock.remote._address import (
     peer_credentials,
     with_verification,
 )
+from evclock.remote._checks import one_line, shown
 from evclock.remote._routing import Message
 from evclock.remote._token import check_token
 from evclock.sources import TimeSource
@@ -268,7 +269,9 @@ class RemoteClockSource(TimeSource):
                 code, reason = proto.REFUSE_FINAL, payload.decode(errors="replace")
             if code == proto.REFUSE_BUSY:
                 return None
-            raise JoinRefusedError(f"the clock server at {addr} refused {self.name!r}: {reason}")
+            raise JoinRefusedError(
+                f"the clock server at {addr} refused {self.name!r}: {one_line(reason)}"
+            )
         if kind != proto.WELCOME:
             raise ProtocolError(
                 f"{addr} answered the handshake with frame kind {kind}, not WELCOME"
@@ -300,7 +303,7 @@ class RemoteClockSource(TimeSource):
             code, reason = proto.parse_refuse(payload)
             if code == proto.REFUSE_BUSY:
                 return None
-            what = f"a REFUSE (saying {reason[:200]!r})"
+            what = f"a REFUSE (saying {shown(reason)})"
         elif kind == proto.WELCOME:
             what = "a WELCOME"
         raise JoinRefusedError(
@@ -547,7 +550,8 @@ class RemoteClockSource(TimeSource):
         ok, payload = self._replies.pop(call_id)
         if not ok:
             raise RemoteCallError(
-                f"call to {service!r} failed in the simulation: {payload.decode(errors='replace')}"
+                f"call to {service!r} failed in the simulation: "
+                f"{one_line(payload.decode(errors='replace'))}"
             )
         return payload
 
@@ -686,11 +690,11 @@ class RemoteClockSource(TimeSource):
             self._on_jump(*proto.parse_jump(payload))
         elif kind == proto.ERROR:
             about, reason = proto.parse_error(payload)
-            log.warning("the clock server at %s: %s", self._address, reason)
+            log.warning("the clock server at %s: %s", self._address, one_line(reason))
             self._errors.append((about, reason))
             del self._errors[:-_KEEP_ERRORS]
         elif kind == proto.CLOSING:
-            self._lose(payload.decode(errors="replace"))
+            self._lose(one_line(payload.decode(errors="replace")))
         else:
             raise ProtocolError(f"unexpected frame kind {kind} from the server")
 

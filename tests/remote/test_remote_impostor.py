@@ -138,3 +138,58 @@ def test_an_unproven_busy_answer_is_only_retried(tmp_path: Path) -> None:
     kinds = _only_hellos(received)
     assert kinds == [proto.HELLO] * len(kinds)
     assert len(kinds) >= 2  # it tried again
+
+
+#: A server that knows the token (argv[1]): it proves itself, welcomes the participant, then
+#: closes with the reason argv[2] followed by argv[3] x's, once the participant has gone.
+PROVEN = """
+import socket, sys
+from evclock.remote import _protocol as proto
+token, then = sys.argv[1], proto.closing(sys.argv[2] + "x" * int(sys.argv[3]))
+listener = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+listener.bind(("127.0.0.1", 0))
+listener.listen(1)
+listener.settimeout(30)
+print("listening", listener.getsockname()[1], flush=True)
+conn, _ = listener.accept()
+conn.settimeout(30)
+reader = proto.Reader()
+def next_frame():
+    while True:
+        frames = reader.feed(conn.recv(4096))
+        if frames:
+            return frames[0]
+_, hello = next_frame()
+version, mode, name, nonce = proto.parse_hello(hello)
+server_nonce = proto.new_nonce()
+transcript = proto.transcript(version, mode, name, nonce, server_nonce)
+conn.sendall(proto.challenge(server_nonce, proto.prove(token, proto.SERVER_SIDE, transcript)))
+next_frame()  # the participant's proof
+conn.sendall(proto.welcome(0, proto.MAX_FRAME, b"{}") + then)
+while conn.recv(4096):
+    pass
+"""
+
+
+def test_what_the_server_says_reaches_the_participant_escaped_and_bounded(
+    tmp_path: Path,
+) -> None:
+    # Even an authenticated server's text (a CLOSING reason here) is quoted and cut before
+    # it reaches the participant's error: no forged line, no 1 MB message.
+    forged = "stopped\nevclock.remote.JoinRefusedError: forged"
+    server = spawn(tmp_path, PROVEN, TOKEN, forged, "1000000")
+    words = read_line(server).split()
+    assert words[0] == "listening", words
+    victim = spawn(
+        tmp_path,
+        VICTIM,
+        EVCLOCK_CLOCK=f"tcp://127.0.0.1:{words[1]}?name=victim&token={TOKEN}&timeout=10",
+    )
+    code, _, err = finish(victim)
+    assert code == 1
+    last = err.strip().splitlines()[-1]
+    assert last.startswith("evclock.ClockLostError: stopped\\nevclock.remote.JoinRefusedError")
+    assert last.endswith(" more characters not shown)")
+    assert len(last) < 1200
+    assert "forged" not in err.replace(last, "")  # nowhere but in that one line
+    finish(server)
