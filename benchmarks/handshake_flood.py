@@ -30,6 +30,8 @@ import textwrap
 import time
 from pathlib import Path
 
+from _handshake_attacker import ATTACKER
+
 ROOT = Path(__file__).resolve().parent.parent
 #: Wall seconds any wait of this script may take (a guard against a hang, not a measure).
 GUARD = 300.0
@@ -48,41 +50,6 @@ async def main():
         # Serving on (the flood goes on) until stdin closes.
         await asyncio.get_running_loop().run_in_executor(None, sys.stdin.readline)
 evclock.run(main())
-"""
-
-ATTACKER = """
-import os, selectors, socket, sys, time
-from evclock.remote import _protocol as proto
-host, port, width = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-how, stop = sys.argv[4], sys.argv[5]
-sel = selectors.DefaultSelector()
-closed = 0
-announced = False
-end = time.monotonic() + 3600
-while time.monotonic() < end and not os.path.exists(stop):
-    while len(sel.get_map()) < width and not os.path.exists(stop):
-        try:
-            sock = socket.create_connection((host, port), timeout=1)
-            if how == "hello":
-                sock.sendall(proto.hello(proto.MODE_FOLLOW, "attacker", proto.new_nonce()))
-        except OSError:
-            continue
-        sock.setblocking(False)
-        sel.register(sock, selectors.EVENT_READ)
-    for key, _ in sel.select(0.05):
-        try:
-            data = key.fileobj.recv(65536)
-        except OSError:
-            data = b""
-        if data and how == "hello" and data[4] == proto.CHALLENGE:
-            continue
-        sel.unregister(key.fileobj)
-        key.fileobj.close()
-        closed += 1
-        if not announced:
-            announced = True
-            print("flooding", flush=True)
-print(closed, flush=True)
 """
 
 HONEST = """
@@ -151,6 +118,7 @@ def measure(checkout: Path, args: argparse.Namespace, folder: Path) -> dict[str,
                 str(args.width),
                 args.how,
                 str(stop),
+                "3600",
             ],
             cwd=ROOT,
             env=_env(None),

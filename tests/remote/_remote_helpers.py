@@ -14,6 +14,45 @@ ROOT = Path(__file__).resolve().parents[2]
 #: Wall seconds any single process wait may take: a guard against hangs, not a timing check.
 WAIT = 60.0
 
+#: A lockstep participant: prints its start time, sleeps 1 ms of sim time argv[1] times, then
+#: prints its end time.
+STEADY = """
+import sys, evclock
+async def main():
+    clock = evclock.clock()
+    print("start", clock.now().nanoseconds, flush=True)
+    for _ in range(int(sys.argv[1])):
+        await clock.sleep(0.001)
+    print("end", clock.now().nanoseconds, flush=True)
+evclock.run(main())
+"""
+
+#: The start of a script that joins a server by hand, without a token: connects to the Unix
+#: socket argv[1]; ``frame()`` reads the next frame, ``join(mode, name)`` answers the
+#: challenge with an empty proof and prints "joined" once welcome. A script adds its own
+#: lines after it.
+JOIN_BY_HAND = """
+import socket, sys
+from evclock.remote import _protocol as proto
+sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+sock.settimeout(30)
+sock.connect(sys.argv[1])
+reader = proto.Reader()
+def frame():
+    got = []
+    while not got:
+        data = sock.recv(65536)
+        assert data, "closed"
+        got = reader.feed(data)
+    return got[0]
+def join(mode, name):
+    sock.sendall(proto.hello(mode, name, proto.new_nonce()))
+    assert frame()[0] == proto.CHALLENGE
+    sock.sendall(proto.proof(b""))
+    assert frame()[0] == proto.WELCOME
+    print("joined", flush=True)
+"""
+
 
 def spawn(tmp_path: Path, code: str, *args: str, **env: str) -> subprocess.Popen[str]:
     """Run ``code`` (a Python script body) in a new interpreter, stdout piped."""

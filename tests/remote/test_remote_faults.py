@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from _remote_helpers import finish, read_line, spawn
+from _remote_helpers import STEADY, finish, read_line, spawn
 
 import evclock
 from evclock.remote import _admission
@@ -34,18 +34,6 @@ async def main():
     await clock.sleep(0.010)
     print("working", clock.now().nanoseconds, flush=True)
     time.sleep(float(sys.argv[1]))
-evclock.run(main())
-"""
-
-#: Prints its start time, then sleeps 1 ms of sim time N times.
-STEADY = """
-import sys, evclock
-async def main():
-    clock = evclock.clock()
-    print("start", clock.now().nanoseconds, flush=True)
-    for _ in range(int(sys.argv[1])):
-        await clock.sleep(0.001)
-    print("end", clock.now().nanoseconds, flush=True)
 evclock.run(main())
 """
 

@@ -20,46 +20,8 @@ import pytest
 from _remote_helpers import finish, read_line, spawn
 
 import evclock
+from benchmarks._handshake_attacker import ATTACKER
 from evclock.remote import _admission
-
-#: Keeps argv[3] connections open to argv[1]:argv[2] until the file argv[5] exists (at most
-#: 60 s), reopening each one the server closes at once; with argv[4] == "hello" each sends a
-#: HELLO (no token: it never gets further). Prints "flooding" once the server has closed
-#: one, and at the end how many the server closed.
-ATTACKER = """
-import os, selectors, socket, sys, time
-from evclock.remote import _protocol as proto
-host, port, width = sys.argv[1], int(sys.argv[2]), int(sys.argv[3])
-how, stop = sys.argv[4], sys.argv[5]
-sel = selectors.DefaultSelector()
-closed = 0
-announced = False
-end = time.monotonic() + 60
-while time.monotonic() < end and not os.path.exists(stop):
-    while len(sel.get_map()) < width and not os.path.exists(stop):
-        try:
-            sock = socket.create_connection((host, port), timeout=1)
-            if how == "hello":
-                sock.sendall(proto.hello(proto.MODE_FOLLOW, "attacker", proto.new_nonce()))
-        except OSError:
-            continue
-        sock.setblocking(False)
-        sel.register(sock, selectors.EVENT_READ)
-    for key, _ in sel.select(0.05):
-        try:
-            data = key.fileobj.recv(65536)
-        except OSError:
-            data = b""
-        if data and how == "hello" and data[4] == proto.CHALLENGE:
-            continue  # its challenge: it never answers
-        sel.unregister(key.fileobj)
-        key.fileobj.close()  # refused or evicted: open another at once
-        closed += 1
-        if not announced:
-            announced = True
-            print("flooding", flush=True)
-print(closed, flush=True)
-"""
 
 STEADY = """
 import evclock
@@ -86,7 +48,7 @@ def test_an_honest_participant_joins_under_a_handshake_flood(
         async with evclock.remote.serve("tcp://127.0.0.1:0", token=token) as server:
             port = server.address.rsplit(":", 1)[1]
             width = str(_admission.MAX_PENDING + 16)
-            attacker = spawn(tmp_path, ATTACKER, "127.0.0.1", port, width, how, str(stop))
+            attacker = spawn(tmp_path, ATTACKER, "127.0.0.1", port, width, how, str(stop), "60")
             procs["attacker"] = attacker
             assert (await loop.run_in_executor(None, read_line, attacker)).strip() == "flooding"
             started.append(time.monotonic())

@@ -17,25 +17,13 @@ import sys
 from pathlib import Path
 
 import pytest
-from _remote_helpers import finish, read_line, spawn
+from _remote_helpers import JOIN_BY_HAND, STEADY, finish, read_line, spawn
 
 import evclock
 from evclock.remote import _admission
 from evclock.remote import _protocol as proto
 from evclock.remote._address import private_dir
 from evclock.remote._server import default_address
-
-#: A lockstep participant that prints its start and end times around N sleeps of 1 ms.
-STEADY = """
-import sys, evclock
-async def main():
-    clock = evclock.clock()
-    print("start", clock.now().nanoseconds, flush=True)
-    for _ in range(int(sys.argv[1])):
-        await clock.sleep(0.001)
-    print("end", clock.now().nanoseconds, flush=True)
-evclock.run(main())
-"""
 
 #: Listens on argv[1] as if it were the simulation; records every byte a participant sends
 #: (to argv[2]) and answers its HELLO with a challenge carrying a made-up proof.
@@ -467,32 +455,18 @@ def test_frames_after_the_handshake_are_capped_by_max_frame(tmp_path: Path) -> N
 
 #: Joins by hand (mode argv[2], no token) and sends one frame of argv[3] bytes' length
 #: field, more than the server's max_frame: the server must end this connection only.
-OVERSIZED_AFTER_JOIN = """
-import socket, struct, sys
-from evclock.remote import _protocol as proto
-sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-sock.settimeout(30)
-sock.connect(sys.argv[1])
+OVERSIZED_AFTER_JOIN = (
+    JOIN_BY_HAND
+    + """
+import struct
 mode, length = int(sys.argv[2]), int(sys.argv[3])
-reader = proto.Reader()
-def frame():
-    got = []
-    while not got:
-        data = sock.recv(65536)
-        assert data, "closed"
-        got = reader.feed(data)
-    return got[0]
-nonce = proto.new_nonce()
-sock.sendall(proto.hello(mode, "big", nonce))
-assert frame()[0] == proto.CHALLENGE
-sock.sendall(proto.proof(b""))
-assert frame()[0] == proto.WELCOME
-print("joined", flush=True)
+join(mode, "big")
 sock.sendall(struct.pack("<IB", length, proto.PUBLISH) + bytes(64))
 while sock.recv(65536):  # until the server hangs up
     pass
 print("dropped", flush=True)
 """
+)
 
 
 @pytest.mark.parametrize(

@@ -17,7 +17,7 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from _remote_helpers import ROOT, WAIT, finish, read_line, spawn
+from _remote_helpers import JOIN_BY_HAND, ROOT, WAIT, finish, read_line, spawn
 
 import evclock
 from evclock.remote import Limits
@@ -55,26 +55,11 @@ sys.stdin.readline()
 #: Joins argv[1] by hand in lockstep as "adversary" (so it works at time 0 and never says
 #: DONE), then sends argv[3] frames of kind argv[2] (of argv[4] bytes) as fast as it can,
 #: never reading, until the server hangs up.
-ADVERSARY = """
-import socket, sys
-from evclock.remote import _protocol as proto
-sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-sock.settimeout(30)
-sock.connect(sys.argv[1])
+ADVERSARY = (
+    JOIN_BY_HAND
+    + """
 kind, count, size = sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
-reader = proto.Reader()
-def frame():
-    got = []
-    while not got:
-        data = sock.recv(65536)
-        assert data, "closed"
-        got = reader.feed(data)
-    return got[0]
-sock.sendall(proto.hello(proto.MODE_LOCKSTEP, "adversary", proto.new_nonce()))
-assert frame()[0] == proto.CHALLENGE
-sock.sendall(proto.proof(b""))
-assert frame()[0] == proto.WELCOME
-print("joined", flush=True)
+join(proto.MODE_LOCKSTEP, "adversary")
 payload = bytes(size)
 try:
     for i in range(count):
@@ -91,6 +76,7 @@ except OSError:
     pass  # the server hung up on it
 print("dropped", flush=True)
 """
+)
 
 #: An honest lockstep participant: 20 steps of 1 ms, publishing in each.
 HONEST = """
