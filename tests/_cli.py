@@ -8,6 +8,7 @@ check).
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -34,6 +35,28 @@ def run_evclock(
         env=env,
         check=False,
     )
+
+
+def run_command(
+    command: list[str], *args: str, cwd: Path | None = None, columns: int = 200
+) -> subprocess.CompletedProcess[str]:
+    """Run ``command`` (an ``evclock`` command line, such as one with an engine hidden) with
+    ``args`` in ``cwd``, as on a terminal ``columns`` wide without colours; the finished
+    process, whatever its exit status."""
+    return subprocess.run(
+        [*command, *args],
+        capture_output=True,
+        text=True,
+        timeout=TIMEOUT,
+        check=False,
+        cwd=cwd,
+        env={**os.environ, "COLUMNS": str(columns), "NO_COLOR": "1"},
+    )
+
+
+def one_line(text: str) -> str:
+    """``text`` with every run of whitespace (a wrapped line's breaks too) as one space."""
+    return " ".join(text.split())
 
 
 def interrupt_when(

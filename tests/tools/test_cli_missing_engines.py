@@ -9,15 +9,12 @@ unimportable (``sys.modules[name] = None``), as on a machine without them.
 
 from __future__ import annotations
 
-import os
 import subprocess
 from pathlib import Path
 
 import pytest
+from _cli import one_line, run_command
 from _without_pybullet import CLI_WITHOUT_ENGINES, CLI_WITHOUT_PYBULLET
-
-#: Wall seconds a command may take (nothing runs: they fail before any run).
-CHILD_TIMEOUT = 120
 
 _WHEELS = (
     "(PyBullet has wheels for CPython 3.11 only; on another Python pip builds it from source, "
@@ -32,19 +29,7 @@ _KUKA = (
 def evclock(
     command: list[str], *args: str, cwd: Path | None = None
 ) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*command, *args],
-        capture_output=True,
-        text=True,
-        timeout=CHILD_TIMEOUT,
-        check=False,
-        cwd=cwd,
-        env={**os.environ, "COLUMNS": "250", "NO_COLOR": "1"},
-    )
-
-
-def one_line(text: str) -> str:
-    return " ".join(text.split())
+    return run_command(command, *args, cwd=cwd, columns=250)
 
 
 @pytest.mark.parametrize(

@@ -16,10 +16,8 @@ import sys
 from pathlib import Path
 
 import pytest
+from _cli import TIMEOUT, one_line, run_command
 from _without_pybullet import CLI_WITHOUT_PYBULLET
-
-#: Wall seconds a command may take: a guard against hangs, not a timing check.
-CHILD_TIMEOUT = 240
 
 EVCLOCK = [sys.executable, "-m", "evclock"]
 
@@ -27,19 +25,7 @@ EVCLOCK = [sys.executable, "-m", "evclock"]
 def evclock(
     command: list[str], *args: str, cwd: Path | None = None
 ) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [*command, *args],
-        capture_output=True,
-        text=True,
-        timeout=CHILD_TIMEOUT,
-        check=False,
-        cwd=cwd,
-        env={**os.environ, "COLUMNS": "200", "NO_COLOR": "1"},
-    )
-
-
-def one_line(text: str) -> str:
-    return " ".join(text.split())
+    return run_command(command, *args, cwd=cwd, columns=200)
 
 
 @pytest.mark.parametrize("command", ["run", "sweep", "control"])
@@ -103,7 +89,7 @@ def test_the_progress_bar_is_drawn_on_a_terminals_stderr(tmp_path: Path) -> None
             stdout=subprocess.PIPE,
             stderr=terminal,
             text=True,
-            timeout=CHILD_TIMEOUT,
+            timeout=TIMEOUT,
             check=False,
             cwd=tmp_path,
             env={**os.environ, "COLUMNS": "120", "TERM": "xterm"},

@@ -5,13 +5,13 @@ package is made unimportable (``sys.modules[name] = None``)."""
 from __future__ import annotations
 
 import importlib.util
-import os
 import subprocess
 import sys
 import textwrap
 from pathlib import Path
 
 import pytest
+from _cli import one_line, run_command
 
 import evclock
 from evclock._extras import import_extra
@@ -172,19 +172,7 @@ def cli(args: list[str], *, hide: tuple[str, ...], cwd: Path) -> subprocess.Comp
         sys.argv = ["evclock", *{args!r}]
         main()
         """
-    return subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)],
-        capture_output=True,
-        text=True,
-        timeout=_CHILD_TIMEOUT,
-        check=False,
-        cwd=cwd,
-        env={**os.environ, "COLUMNS": "300", "NO_COLOR": "1"},
-    )
-
-
-def one_line(text: str) -> str:
-    return " ".join(text.split())
+    return run_command([sys.executable, "-c", textwrap.dedent(code)], cwd=cwd, columns=300)
 
 
 def register(directory: Path, entry_points: dict[str, str]) -> None:
