@@ -9,6 +9,9 @@ import sys
 import textwrap
 import time
 from pathlib import Path
+from typing import Any
+
+import evclock
 
 ROOT = Path(__file__).resolve().parents[2]
 #: Wall seconds any single process wait may take: a guard against hangs, not a timing check.
@@ -93,3 +96,15 @@ def read_line(proc: subprocess.Popen[str], timeout: float = WAIT) -> str:
             if time.monotonic() >= deadline:
                 raise AssertionError("no output from the participant in time")
     return proc.stdout.readline()
+
+
+def serve_until_left(url: str, name: str, **options: Any) -> None:
+    """Serve this process's simulation on ``url`` (with the ``serve()`` ``options``) until
+    the participant ``name`` has joined and every participant has left."""
+
+    async def main() -> None:
+        async with evclock.remote.serve(url, **options) as server:
+            await server.wait_for_participants(name)
+            await server.wait_until_left()
+
+    evclock.run(main())

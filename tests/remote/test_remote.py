@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from _remote_helpers import finish, read_line, spawn
+from _remote_helpers import finish, read_line, serve_until_left, spawn
 
 import evclock
 from evclock.remote import _protocol as proto
@@ -361,12 +361,7 @@ def test_a_participant_started_before_the_server_waits_for_it(tmp_path: Path) ->
     proc = spawn(tmp_path, TICKER, "2", EVCLOCK_CLOCK=f"{url}?name=early")
     # The participant is already retrying when the server comes up.
 
-    async def main() -> None:
-        async with evclock.remote.serve(url) as server:
-            await server.wait_for_participants("early")
-            await server.wait_until_left()
-
-    evclock.run(main())
+    serve_until_left(url, "early")
     code, out, err = finish(proc)
     assert code == 0, err
     assert json.loads(out) == [0, 1_000_000, 2_000_000]

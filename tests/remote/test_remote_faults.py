@@ -20,7 +20,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from _remote_helpers import STEADY, finish, read_line, spawn
+from _remote_helpers import STEADY, finish, read_line, serve_until_left, spawn
 
 import evclock
 from evclock.remote import _admission
@@ -60,13 +60,8 @@ def test_a_killed_participant_aborts_the_simulation_naming_it(tmp_path: Path) ->
     victim = spawn(tmp_path, STUCK, "60", EVCLOCK_CLOCK=f"{url}?name=victim")
     on_output(victim, lambda _line: victim.send_signal(signal.SIGKILL))
 
-    async def main() -> None:
-        async with evclock.remote.serve(url) as server:
-            await server.wait_for_participants("victim")
-            await server.wait_until_left()
-
     with pytest.raises(evclock.remote.ParticipantLostError) as caught:
-        evclock.run(main())
+        serve_until_left(url, "victim")
     assert caught.value.name == "victim"
     assert re.fullmatch(
         rf"participant 'victim' \(lockstep, pid {victim.pid}\) closed its connection without "
@@ -84,11 +79,6 @@ def test_a_stopped_participant_hits_the_step_timeout(tmp_path: Path) -> None:
     victim = spawn(tmp_path, STUCK, "5", EVCLOCK_CLOCK=f"{url}?name=frozen")
     on_output(victim, lambda _line: victim.send_signal(signal.SIGSTOP))
 
-    async def main() -> None:
-        async with evclock.remote.serve(url, step_timeout=0.5) as server:
-            await server.wait_for_participants("frozen")
-            await server.wait_until_left()
-
     try:
         with pytest.raises(
             evclock.remote.ParticipantLostError,
@@ -97,7 +87,7 @@ def test_a_stopped_participant_hits_the_step_timeout(tmp_path: Path) -> None:
             r"of sim time \(it was last granted 0\.010000 s of sim time and had not answered "
             r"for 0\.[5-9][0-9]* s of wall time\)",
         ):
-            evclock.run(main())
+            serve_until_left(url, "frozen", step_timeout=0.5)
     finally:
         victim.send_signal(signal.SIGKILL)
         reap(victim)

@@ -17,7 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
-from _remote_helpers import JOIN_BY_HAND, STEADY, finish, read_line, spawn
+from _remote_helpers import JOIN_BY_HAND, STEADY, finish, read_line, serve_until_left, spawn
 
 import evclock
 from evclock.remote import _admission
@@ -131,12 +131,7 @@ def test_an_eavesdropper_learns_neither_the_token_nor_a_reusable_proof(tmp_path:
         EVCLOCK_CLOCK=f"unix://{front}?name=honest&token=correct-horse-battery-staple",
     )
 
-    async def main() -> None:
-        async with evclock.remote.serve(real, token="correct-horse-battery-staple") as server:
-            await server.wait_for_participants("honest")
-            await server.wait_until_left()
-
-    evclock.run(main())
+    serve_until_left(real, "honest", token="correct-horse-battery-staple")
     code, out, err = finish(honest)
     assert code == 0, err
     assert out.split() == ["start", "0", "end", "2000000"]
@@ -286,18 +281,15 @@ def test_a_directory_planted_by_someone_else_is_refused(
         default_address()
 
 
-def test_a_participant_of_the_previous_protocol_gets_a_clear_answer(tmp_path: Path) -> None:
-    # The scripted peer of version 2 sent HELLO with its token; the server answers with the
-    # versions, and a version-3 participant meeting a version-2 server says so too.
-    url = url_in(tmp_path)
-    payload = b"EVCLK" + struct.pack("<HB", 2, 0) + b"\x03old" + b"\x00\x00"
-    frame = struct.pack("<IB", len(payload) + 1, proto.HELLO) + payload
+def first_answer(url: str, data: bytes) -> tuple[int, bytes]:
+    """Serve on ``url``, send ``data`` to it on a raw connection and read until the server
+    hangs up: the kind and payload of the first frame it sent back."""
 
     def exchange(address: str) -> bytes:
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
             sock.settimeout(30)
             sock.connect(address.removeprefix("unix://"))
-            sock.sendall(frame)
+            sock.sendall(data)
             answer = b""
             while chunk := sock.recv(4096):
                 answer += chunk
@@ -308,7 +300,17 @@ def test_a_participant_of_the_previous_protocol_gets_a_clear_answer(tmp_path: Pa
         async with evclock.remote.serve(url) as server:
             return await loop.run_in_executor(None, exchange, server.address)
 
-    (kind, refused), *_ = proto.Reader().feed(evclock.run(main()))
+    (kind, payload), *_ = proto.Reader().feed(evclock.run(main()))
+    return kind, payload
+
+
+def test_a_participant_of_the_previous_protocol_gets_a_clear_answer(tmp_path: Path) -> None:
+    # The scripted peer of version 2 sent HELLO with its token; the server answers with the
+    # versions, and a version-3 participant meeting a version-2 server says so too.
+    url = url_in(tmp_path)
+    payload = b"EVCLK" + struct.pack("<HB", 2, 0) + b"\x03old" + b"\x00\x00"
+    frame = struct.pack("<IB", len(payload) + 1, proto.HELLO) + payload
+    kind, refused = first_answer(url, frame)
     assert (kind, proto.parse_refuse(refused)) == (
         proto.REFUSE,
         (
@@ -393,23 +395,8 @@ def test_memory_stays_bounded_under_oversized_and_slow_connections(tmp_path: Pat
 
 def test_an_oversized_frame_before_the_handshake_is_refused_unread(tmp_path: Path) -> None:
     url = url_in(tmp_path)
-
-    def exchange(address: str) -> bytes:
-        with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as sock:
-            sock.settimeout(30)
-            sock.connect(address.removeprefix("unix://"))
-            sock.sendall(struct.pack("<IB", proto.PRE_AUTH_MAX_FRAME + 1, proto.HELLO))
-            answer = b""
-            while chunk := sock.recv(4096):
-                answer += chunk
-        return answer
-
-    async def main() -> bytes:
-        loop = asyncio.get_running_loop()
-        async with evclock.remote.serve(url) as server:
-            return await loop.run_in_executor(None, exchange, server.address)
-
-    (kind, payload), *_ = proto.Reader().feed(evclock.run(main()))
+    header = struct.pack("<IB", proto.PRE_AUTH_MAX_FRAME + 1, proto.HELLO)
+    kind, payload = first_answer(url, header)
     assert kind == proto.REFUSE
     assert proto.parse_refuse(payload)[1] == (
         "not an evclock clock client: bad frame length 4097: the limit of this connection "
