@@ -53,42 +53,29 @@ def clock_sleep(rows: Rows) -> None:
 
 def asyncio_sleep_sim(rows: Rows) -> None:
     """``await asyncio.sleep(d)`` on evclock's sim loop."""
-    import evclock
 
     async def worker(durations: list[float]) -> None:
         sleep = asyncio.sleep
         for d in durations:
             await sleep(d)
 
-    async def main() -> None:
-        await asyncio.gather(*(worker(row) for row in rows))
-
-    evclock.run(main())
+    _gather_on(_sim_run, worker, rows)
 
 
 def sleep0_fanout(rows: Rows) -> None:
     """The floor: ``await asyncio.sleep(0)`` once per duration, on a stock loop."""
-
-    async def worker(durations: list[float]) -> None:
-        sleep = asyncio.sleep
-        for _ in durations:
-            await sleep(0)
-
-    async def main() -> None:
-        await asyncio.gather(*(worker(row) for row in rows))
-
-    asyncio.run(main())
+    _gather_on(asyncio.run, _sleep0_worker, rows)
 
 
 def sleep0_fanout_uvloop(rows: Rows) -> None:
     """The floor on uvloop (compiled with Cython on libuv): ``await asyncio.sleep(0)``."""
+    _gather_on(_uvloop_run, _sleep0_worker, rows)
 
-    async def worker(durations: list[float]) -> None:
-        sleep = asyncio.sleep
-        for _ in durations:
-            await sleep(0)
 
-    _gather_on(_uvloop_run, worker, rows)
+async def _sleep0_worker(durations: list[float]) -> None:
+    sleep = asyncio.sleep
+    for _ in durations:
+        await sleep(0)
 
 
 def _uvloop_run(coro: Coroutine[Any, Any, Any]) -> None:
@@ -232,21 +219,15 @@ def asyncio_rate_sim(loops: Loops) -> None:
 
 def sleep0_rates(loops: Loops) -> None:
     """The floor: ``await asyncio.sleep(0)`` once per tick, on a stock loop."""
-
-    async def every(ticks: int) -> None:
-        sleep = asyncio.sleep
-        for _ in range(ticks):
-            await sleep(0)
-
-    async def main() -> None:
-        await asyncio.gather(*(every(ticks) for _hz, ticks in loops))
-
-    asyncio.run(main())
+    _sleep0_rates_on(asyncio.run, loops)
 
 
 def sleep0_rates_uvloop(loops: Loops) -> None:
     """The floor on uvloop: ``await asyncio.sleep(0)`` once per tick."""
+    _sleep0_rates_on(_uvloop_run, loops)
 
+
+def _sleep0_rates_on(run: Callable[[Coroutine[Any, Any, Any]], Any], loops: Loops) -> None:
     async def every(ticks: int) -> None:
         sleep = asyncio.sleep
         for _ in range(ticks):
@@ -255,7 +236,7 @@ def sleep0_rates_uvloop(loops: Loops) -> None:
     async def main() -> None:
         await asyncio.gather(*(every(ticks) for _hz, ticks in loops))
 
-    _uvloop_run(main())
+    run(main())
 
 
 def simpy_rate(loops: Loops) -> None:

@@ -323,15 +323,19 @@ def _output(stdout: str, key: str) -> list[str]:
     return [" ".join(f) for f in found]
 
 
-def callgrind(job: Job, marks: str, hash_seed: int = 0) -> tuple[list[int], str]:
-    """Instructions executed by each of ``job``'s measured runs (both counts, one process
-    under callgrind, collected only between the marks), and the process's output."""
+def callgrind_dumps(
+    job: Job, marks: str, env: dict[str, str], label: str, options: Sequence[str] = ()
+) -> tuple[list[str], str]:
+    """Run ``job``'s measured runs (both counts, one process) under callgrind with
+    ``options``, collecting only between the marks: the text of each run's dump, and the
+    process's output. ``label`` names the job in an error."""
     with tempfile.TemporaryDirectory() as out:
         base = os.path.join(out, "callgrind.out")
         done = subprocess.run(
             [
                 "valgrind",
                 "--tool=callgrind",
+                *options,
                 "--instr-atstart=no",
                 "--collect-atstart=no",
                 f"--callgrind-out-file={base}",
@@ -340,18 +344,29 @@ def callgrind(job: Job, marks: str, hash_seed: int = 0) -> tuple[list[int], str]
             capture_output=True,
             text=True,
             timeout=3600,
-            env={**os.environ, "PYTHONHASHSEED": str(hash_seed)},
+            env=env,
         )
         if done.returncode:
-            raise RuntimeError(f"{job.variant} failed:\n{done.stdout}\n{done.stderr}")
-        totals = []
+            raise RuntimeError(f"{label} failed:\n{done.stdout}\n{done.stderr}")
+        dumps = []
         for i in range(1, len(job.counts) + 1):
             with open(f"{base}.{i}") as f:
-                found = re.search(r"^totals: (\d+)", f.read(), re.MULTILINE)
-            if found is None:
-                raise RuntimeError(f"no totals in callgrind's dump {i} of {job.variant}")
-            totals.append(int(found.group(1)))
-    return totals, done.stdout
+                dumps.append(f.read())
+    return dumps, done.stdout
+
+
+def callgrind(job: Job, marks: str, hash_seed: int = 0) -> tuple[list[int], str]:
+    """Instructions executed by each of ``job``'s measured runs (both counts, one process
+    under callgrind, collected only between the marks), and the process's output."""
+    env = {**os.environ, "PYTHONHASHSEED": str(hash_seed)}
+    dumps, stdout = callgrind_dumps(job, marks, env, job.variant)
+    totals = []
+    for i, dump in enumerate(dumps, 1):
+        found = re.search(r"^totals: (\d+)", dump, re.MULTILINE)
+        if found is None:
+            raise RuntimeError(f"no totals in callgrind's dump {i} of {job.variant}")
+        totals.append(int(found.group(1)))
+    return totals, stdout
 
 
 @dataclass

@@ -142,37 +142,16 @@ def build_alloc_counter(directory: str) -> str:
 def simulate(entry: Entry, marks: str) -> list[dict[str, int]]:
     """Each measured run's event totals under callgrind with cache and branch simulation."""
     job = entry.job
-    with tempfile.TemporaryDirectory() as out:
-        base = os.path.join(out, "callgrind.out")
-        done = subprocess.run(
-            [
-                "valgrind",
-                "--tool=callgrind",
-                "--cache-sim=yes",
-                "--branch-sim=yes",
-                *CACHES,
-                "--instr-atstart=no",
-                "--collect-atstart=no",
-                f"--callgrind-out-file={base}",
-                *job.command(job.counts, marks),
-            ],
-            capture_output=True,
-            text=True,
-            timeout=3600,
-            env=entry.env(),
-        )
-        if done.returncode:
-            raise RuntimeError(f"{entry.label} failed:\n{done.stdout}\n{done.stderr}")
-        totals = []
-        for i in range(1, len(job.counts) + 1):
-            with open(f"{base}.{i}") as f:
-                text = f.read()
-            events = re.search(r"^events: (.+)$", text, re.MULTILINE)
-            found = re.search(r"^totals: (.+)$", text, re.MULTILINE)
-            if events is None or found is None:
-                raise RuntimeError(f"no totals in callgrind's dump {i} of {job.variant}")
-            names, values = events.group(1).split(), found.group(1).split()
-            totals.append(dict(zip(names, map(int, values), strict=True)))
+    options = ["--cache-sim=yes", "--branch-sim=yes", *CACHES]
+    dumps, _ = ins.callgrind_dumps(job, marks, entry.env(), entry.label, options)
+    totals = []
+    for i, dump in enumerate(dumps, 1):
+        events = re.search(r"^events: (.+)$", dump, re.MULTILINE)
+        found = re.search(r"^totals: (.+)$", dump, re.MULTILINE)
+        if events is None or found is None:
+            raise RuntimeError(f"no totals in callgrind's dump {i} of {job.variant}")
+        names, values = events.group(1).split(), found.group(1).split()
+        totals.append(dict(zip(names, map(int, values), strict=True)))
     return totals
 
 
