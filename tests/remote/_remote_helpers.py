@@ -86,16 +86,18 @@ def finish(proc: subprocess.Popen[str]) -> tuple[int, str, str]:
     return proc.returncode, out, err
 
 
-def read_line(proc: subprocess.Popen[str], timeout: float = WAIT) -> str:
-    """The next stdout line of ``proc`` (bounded wait)."""
-    assert proc.stdout is not None
+def read_line(proc: subprocess.Popen[str], timeout: float = WAIT, *, stderr: bool = False) -> str:
+    """The next stdout line of ``proc`` (its next stderr line with ``stderr``; bounded wait)."""
+    stream = proc.stderr if stderr else proc.stdout
+    assert stream is not None
     with selectors.DefaultSelector() as sel:
-        sel.register(proc.stdout, selectors.EVENT_READ)
+        sel.register(stream, selectors.EVENT_READ)
         deadline = time.monotonic() + timeout
         while not sel.select(max(deadline - time.monotonic(), 0)):
             if time.monotonic() >= deadline:
-                raise AssertionError("no output from the participant in time")
-    return proc.stdout.readline()
+                where = "stderr" if stderr else "stdout"
+                raise AssertionError(f"no line on the {where} of pid {proc.pid} in time")
+    return stream.readline()
 
 
 def serve_until_left(url: str, name: str, **options: Any) -> None:

@@ -10,15 +10,13 @@ from __future__ import annotations
 
 import os
 import re
-import selectors
 import socket
 import stat
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
-from _remote_helpers import ROOT, WAIT
+from _remote_helpers import ROOT, WAIT, read_line
 from test_remote_split import CLI, wait
 
 import evclock
@@ -275,17 +273,6 @@ def test_evclock_token_prints_a_fresh_token_and_nothing_else() -> None:
     assert all(run.stderr == "" for run in outputs)
 
 
-def read_stderr_line(proc: subprocess.Popen[str]) -> str:
-    assert proc.stderr is not None
-    with selectors.DefaultSelector() as sel:
-        sel.register(proc.stderr, selectors.EVENT_READ)
-        deadline = time.monotonic() + WAIT
-        while not sel.select(max(deadline - time.monotonic(), 0)):
-            if time.monotonic() >= deadline:
-                raise AssertionError("no line on the simulation's stderr in time")
-    return proc.stderr.readline()
-
-
 ENGINE = ["--engine", "mujoco"]  # no PyBullet needed on either end
 
 
@@ -294,7 +281,7 @@ def test_serving_tcp_without_a_token_writes_a_fresh_one_to_a_private_file() -> N
     server = cli("run", "cartpole", "--until", "1", *ENGINE, "--quiet", "--serve", address,
                  "--remote-controllers")  # fmt: skip
     try:
-        line = read_stderr_line(server)
+        line = read_line(server, stderr=True)
         found = re.fullmatch(
             rf"evclock: the clock token of {address} is in (/\S+\.token) \(mode 0600, removed "
             r"when this run ends\); join with --token-file \1\n",
