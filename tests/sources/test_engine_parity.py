@@ -15,12 +15,13 @@ the MuJoCo halves run on every supported Python.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import os
 import subprocess
 import sys
 import textwrap
-from collections.abc import AsyncIterator, Awaitable
+from collections.abc import AsyncIterator, Awaitable, Callable
 from fractions import Fraction
 from pathlib import Path
 from typing import Any
@@ -49,20 +50,30 @@ KUKA_MISSION_TIME_TOLERANCE_S = 1.5
 def run_scenario(name: str, engine: str, seed: int, until: float | None = None) -> Any:
     """Run scenario ``name`` on ``engine`` for its mission (or ``until`` sim seconds)."""
     source, scenario = open_world(load_scenario(name), seed, engine=engine)
+    run_for(source, scenario, scenario.default_until if until is None else until)
+    return scenario
+
+
+def run_for(
+    source: Any,
+    scenario: Any,
+    seconds: float,
+    *,
+    clock: Callable[[], Any] = evclock.clock,
+    rtf: float | None = None,
+) -> None:
+    """Run ``scenario`` on ``source`` (at ``rtf``) with the clock ``clock()`` gives, for
+    ``seconds`` of sim time or until its mission ends; the source is closed after."""
 
     async def main() -> None:
-        limit = scenario.default_until if until is None else until
-        try:
-            async with asyncio.timeout(limit):
-                await scenario.run(evclock.clock())
-        except TimeoutError:
-            pass
+        with contextlib.suppress(TimeoutError):
+            async with asyncio.timeout(seconds):
+                await scenario.run(clock())
 
     try:
-        evclock.run(main(), source=source)
+        evclock.run(main(), source=source, rtf=rtf)
     finally:
         source.close()
-    return scenario
 
 
 # ------------------------------------------------------------ reaching the targets
@@ -121,19 +132,11 @@ def kuka_events(engine: str, seconds: float) -> list[tuple[str, int, int]]:
     source, scenario = open_world(KukaReach, 0, engine=engine)
     recorder: list[RecordingClock] = []
 
-    async def main() -> None:
-        clock = RecordingClock()
-        recorder.append(clock)
-        try:
-            async with asyncio.timeout(seconds):
-                await scenario.run(clock)
-        except TimeoutError:
-            pass
+    def recording_clock() -> RecordingClock:
+        recorder.append(RecordingClock())
+        return recorder[-1]
 
-    try:
-        evclock.run(main(), source=source)
-    finally:
-        source.close()
+    run_for(source, scenario, seconds, clock=recording_clock)
     return recorder[0].events
 
 
@@ -230,15 +233,7 @@ def mujoco_kuka_final_state(seed: int, rtf: float | None, hook: bool) -> tuple[b
     source = world.time_source()
     if hook:
         source.add_step_hook(lambda: None)  # steps one at a time instead of nstep runs
-
-    async def main() -> None:
-        try:
-            async with asyncio.timeout(3.0):
-                await scenario.run(evclock.clock())
-        except TimeoutError:
-            pass
-
-    evclock.run(main(), source=source, rtf=rtf)
+    run_for(source, scenario, 3.0, rtf=rtf)
     return world.data.qpos.tobytes() + world.data.qvel.tobytes(), json.dumps(scenario.summary())
 
 
