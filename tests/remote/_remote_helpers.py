@@ -30,6 +30,19 @@ async def main():
 evclock.run(main())
 """
 
+#: Sleeps argv[2] s of sim time argv[1] times and prints the times it woke at (ns), as JSON.
+WAKE_TIMES = """
+import json, sys, evclock
+async def main():
+    clock = evclock.clock()
+    seen = []
+    for _ in range(int(sys.argv[1])):
+        await clock.sleep(float(sys.argv[2]))
+        seen.append(clock.now().nanoseconds)
+    print(json.dumps(seen))
+evclock.run(main())
+"""
+
 #: The start of a script that joins a server by hand, without a token: connects to the Unix
 #: socket argv[1]; ``frame()`` reads the next frame, ``join(mode, name)`` answers the
 #: challenge with an empty proof and prints "joined" once welcome. A script adds its own

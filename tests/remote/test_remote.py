@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
-from _remote_helpers import finish, read_line, serve_until_left, spawn
+from _remote_helpers import WAKE_TIMES, finish, read_line, serve_until_left, spawn
 
 import evclock
 from evclock.remote import _protocol as proto
@@ -325,18 +325,9 @@ def test_follower_sees_every_physics_step_and_never_holds_the_simulation(tmp_pat
     from evclock.sources import PyBulletTimeSource
 
     url = address(tmp_path)
-    follower = """
-    import json, evclock
-    async def main():
-        clock = evclock.clock()
-        seen = []
-        for _ in range(3):
-            await clock.sleep(0.010)
-            seen.append(clock.now().nanoseconds)
-        print(json.dumps(seen))
-    evclock.run(main())
-    """
-    proc = spawn(tmp_path, follower, EVCLOCK_CLOCK=f"{url}?name=watcher&mode=follow")
+    proc = spawn(
+        tmp_path, WAKE_TIMES, "3", "0.010", EVCLOCK_CLOCK=f"{url}?name=watcher&mode=follow"
+    )
     source = PyBulletTimeSource.connect()
 
     async def main() -> None:

@@ -8,13 +8,12 @@ the in-process ``evclock run`` of the same seed, bit for bit, flat out and paced
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from _remote_helpers import ROOT, WAIT, finish, spawn
+from _remote_helpers import ROOT, WAIT, WAKE_TIMES, finish, spawn
 from _without_pybullet import CLI_WITHOUT_PYBULLET
 
 from evclock.remote import ParticipantLostError
@@ -188,14 +187,10 @@ def test_control_needs_an_evclock_clock_server_address(clock: str, says: str) ->
 @pytest.mark.pybullet
 def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
     address = f"unix://{tmp_path / 'sim.sock'}"
-    follower = subprocess.Popen(
-        [sys.executable, "-c", FOLLOWER],
-        cwd=ROOT,
-        env={**os.environ, "EVCLOCK_CLOCK": f"{address}?mode=follow&name=observer"},
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-    )  # started first: it waits for the server to appear
+    # The follower is started first: it waits for the server to appear.
+    follower = spawn(
+        tmp_path, WAKE_TIMES, "5", "0.1", EVCLOCK_CLOCK=f"{address}?mode=follow&name=observer"
+    )
     code, output = wait(evclock_cli("run", "kuka", "--until", "3", "--rtf", "1", "--quiet",
                                     "--serve", address))  # fmt: skip
     seen_code, seen = wait(follower)
@@ -206,16 +201,3 @@ def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
     assert len(times) == 5
     assert all(abs(t / step - round(t / step)) < 1e-6 for t in times)  # physics step times
     assert times == sorted(times)
-
-
-FOLLOWER = """
-import json, evclock
-async def main():
-    clock = evclock.clock()
-    seen = []
-    for _ in range(5):
-        await clock.sleep(0.1)
-        seen.append(clock.now().nanoseconds)
-    print(json.dumps(seen))
-evclock.run(main())
-"""
