@@ -542,23 +542,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     sleeps, waits = _half(args.sleeps, "--sleeps"), _half(args.waits, "--waits")
     rate_ms = _half(args.rate_ms, "--rate-ms")
 
-    # Every workload's jobs, submitted to callgrind at once (results in this order).
-    tables: list[tuple[str, str, list[Job]]] = []
-    if "fanout" in parts:
-        jobs = [Job("fanout", v, args.tasks, sleeps, seed) for v in SLEEP_VARIANTS]
-        tables.append(("fanout", "fan-out", jobs))
-    if "coincident" in parts:
-        jobs = [Job("coincident", v, args.tasks, sleeps, seed) for v in SLEEP_VARIANTS]
-        tables.append(("coincident", "fan-out, whole ms", jobs))
-    if "rates" in parts:
-        jobs = [Job("rates", v, args.loops, rate_ms, seed) for v in RATE_VARIANTS]
-        tables.append(("rates", "rate loops", jobs))
-    if "rates-shared" in parts:
-        jobs = [Job("rates-shared", v, args.loops, rate_ms, seed) for v in RATE_VARIANTS]
-        tables.append(("rates-shared", "rate loops, shared", jobs))
-    if "timeouts" in parts:
-        jobs = [Job("timeouts", v, args.tasks, waits, seed) for v in TIMEOUT_VARIANTS]
-        tables.append(("timeouts", "timeouts", jobs))
+    # Every workload's jobs, submitted to callgrind at once (results in this order): its
+    # key, title, variants, tasks or loops, and both counts.
+    workloads = [
+        ("fanout", "fan-out", SLEEP_VARIANTS, args.tasks, sleeps),
+        ("coincident", "fan-out, whole ms", SLEEP_VARIANTS, args.tasks, sleeps),
+        ("rates", "rate loops", RATE_VARIANTS, args.loops, rate_ms),
+        ("rates-shared", "rate loops, shared", RATE_VARIANTS, args.loops, rate_ms),
+        ("timeouts", "timeouts", TIMEOUT_VARIANTS, args.tasks, waits),
+    ]
+    tables: list[tuple[str, str, list[Job]]] = [
+        (key, title, [Job(key, v, n, counts, seed) for v in variants])
+        for key, title, variants, n, counts in workloads
+        if key in parts
+    ]
     if "scale" in parts:
         big_sleeps = _half(args.big_sleeps, "--big-sleeps")
         jobs = [
