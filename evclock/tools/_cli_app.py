@@ -11,10 +11,11 @@ mission ended, 4 the scenario or a controller raised, 130 interrupted (Ctrl-C).
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import math
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, TypeVar
 
@@ -127,6 +128,17 @@ def parse_params(scenario: str, assignments: list[str]) -> dict[str, list[ParamV
 def print_error(exc: EvClockError | str) -> None:
     """Print ``error: <message>`` on stderr (the message verbatim, never read as markup)."""
     Console(stderr=True).print(f"[red]error:[/red] {escape(str(exc))}", soft_wrap=True)
+
+
+@contextlib.contextmanager
+def usage_errors() -> Iterator[None]:
+    """End the command on an :class:`EvClockError` raised inside: its ``error: <message>``
+    on stderr (:func:`print_error`), exit status 2 (:data:`EXIT_USAGE`)."""
+    try:
+        yield
+    except EvClockError as exc:
+        print_error(exc)
+        raise typer.Exit(EXIT_USAGE) from None
 
 
 def check_seed(seed: int, option: str = "--seed") -> int:

@@ -29,19 +29,18 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from evclock._errors import EvClockError, InvalidArgumentError
+from evclock._errors import InvalidArgumentError
 from evclock.tools._cli_app import (
     EXIT_ERROR,
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_SUCCESS,
-    EXIT_USAGE,
     app,
     check_until,
     check_writable,
     parse_params,
-    print_error,
     progress_console,
+    usage_errors,
     with_exit_statuses,
 )
 from evclock.tools._scenarios import ParamValue, check_engine, load_scenario, require_engine
@@ -402,7 +401,7 @@ def sweep_command(
     with --out DIR the same command resumes it.
     """
     console = Console()
-    try:
+    with usage_errors():
         if seeds is not None and seed is not None:
             raise InvalidArgumentError(
                 "give --seeds N (how many seeds) or --seed S (which seeds), not both"
@@ -458,9 +457,6 @@ def sweep_command(
                 on_idle=display.idle,
                 out_dir=out,
             )
-    except EvClockError as exc:
-        print_error(exc)
-        raise typer.Exit(EXIT_USAGE) from None
     render_sweep(result, console, metric, wanted)
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
@@ -473,16 +469,13 @@ def sweep_command(
     if jsonl_out is not None:
         jsonl_out.write_text(result.to_jsonl())
     if plot is not None:
-        try:
+        with usage_errors():
             if plot_metric is not None:
                 plot_metric_by_parameter(result, plot_metric, plot)
             else:
                 from evclock.tools._plot import plot_sweep
 
                 plot_sweep(result, plot)
-        except EvClockError as exc:
-            print_error(exc)
-            raise typer.Exit(EXIT_USAGE) from None
     raise typer.Exit(sweep_exit_code(result))
 
 

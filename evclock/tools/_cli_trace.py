@@ -22,14 +22,13 @@ from typing import TYPE_CHECKING, Annotated
 import typer
 from rich.console import Console
 
-from evclock._errors import EvClockError, InvalidArgumentError
+from evclock._errors import InvalidArgumentError
 from evclock.tools._cli_app import (
     EXIT_FAILED,
     EXIT_SUCCESS,
-    EXIT_USAGE,
     app,
     check_writable,
-    print_error,
+    usage_errors,
 )
 
 if TYPE_CHECKING:
@@ -42,11 +41,8 @@ app.add_typer(trace_app, name="trace")
 def _read(path: Path) -> Trace:
     from evclock.tools._trace import read_trace
 
-    try:
+    with usage_errors():
         return read_trace(path)
-    except EvClockError as exc:
-        print_error(exc)
-        raise typer.Exit(EXIT_USAGE) from None
 
 
 @trace_app.command("info")
@@ -81,15 +77,12 @@ def echo_command(
     from evclock.tools._trace import echo_lines
 
     trace = _read(recording)
-    try:
+    with usage_errors():
         for value in (start, end):
             if value is not None and not math.isfinite(value):
                 raise InvalidArgumentError(f"--from/--to take finite seconds, got {value}")
         for line in echo_lines(trace, topic, field, start, end):
             typer.echo(line)
-    except EvClockError as exc:
-        print_error(exc)
-        raise typer.Exit(EXIT_USAGE) from None
 
 
 @trace_app.command("layout")
@@ -102,11 +95,8 @@ def layout_command(
     plots, the controllers' log and the state (import it in Foxglove: Layouts, Import)."""
     from evclock.tools._foxglove import LAYOUT_FILE
 
-    try:
+    with usage_errors():
         check_writable(output, "-o")
-    except EvClockError as exc:
-        print_error(exc)
-        raise typer.Exit(EXIT_USAGE) from None
     output.write_bytes(LAYOUT_FILE.read_bytes())
     typer.echo(f"wrote {output}")
 
@@ -151,19 +141,13 @@ def plot_command(
     recorded, so no two fields share a y-axis)."""
     from evclock.tools._plot import figure_class, plot_fields, plot_run
 
-    try:
+    with usage_errors():
         check_writable(output, "-o")
         figure_class()
-    except EvClockError as exc:
-        print_error(exc)
-        raise typer.Exit(EXIT_USAGE) from None
     trace = _read(recording)
-    try:
+    with usage_errors():
         if series:
             plot_fields(trace, series, output)
         else:
             plot_run(trace, output)
-    except EvClockError as exc:
-        print_error(exc)
-        raise typer.Exit(EXIT_USAGE) from None
     Console().print(f"wrote {output}", markup=False, highlight=False)
