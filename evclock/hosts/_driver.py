@@ -63,7 +63,7 @@ from evclock.kernel._clock import Clock, SimClock
 from evclock.kernel._core import DUE, HELD, MOVED, PACING, WAIT_SOURCE, Settling, SimCore
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, PacingControls
 from evclock.kernel._source import TimeSource
-from evclock.kernel._virtual import VirtualTimeSource
+from evclock.kernel._virtual import source_or_virtual
 from evclock.time._time import MAX_TIME_NS, SIM, Duration, Time, new_time, to_sim_time_ns
 
 #: Default bound of loop iterations the driver yields, after waking the tasks due at one sim
@@ -241,13 +241,7 @@ class SimDriver(PacingControls):
         max_settle_yields: int = DEFAULT_MAX_SETTLE_YIELDS,
         wall: Callable[[], float] = time.perf_counter,
     ) -> None:
-        if source is None:
-            source = VirtualTimeSource()
-        elif not isinstance(source, TimeSource):
-            raise InvalidTypeError(
-                f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
-                f"got {type(source).__name__}"
-            )
+        source = source_or_virtual(source)
         if isinstance(max_settle_yields, bool) or not isinstance(max_settle_yields, int):
             raise InvalidTypeError(
                 f"max_settle_yields must be an int, got {type(max_settle_yields).__name__}"

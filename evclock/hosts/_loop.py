@@ -53,7 +53,7 @@ from evclock.hosts._tasks import describe_tasks
 from evclock.kernel._core import DEADLOCK, HELD, MOVED, PACING, WAIT_IO, SimCore
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, PacingControls
 from evclock.kernel._source import TimeSource
-from evclock.kernel._virtual import VirtualTimeSource
+from evclock.kernel._virtual import source_or_virtual
 from evclock.outside._threads import (
     EVENT_LOOP_WAITS,
     check_thread_inference,
@@ -217,13 +217,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if isinstance(source, selectors.BaseSelector) and selector is None:
             # OUTSIDE HOOK: SimEventLoop(selector), like SelectorEventLoop(selector).
             source, selector = None, source
-        if source is None:
-            source = VirtualTimeSource()
-        elif not isinstance(source, TimeSource):
-            raise InvalidTypeError(
-                f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
-                f"got {type(source).__name__}"
-            )
+        source = source_or_virtual(source)
         # Validate everything before the selector (a resource) exists.
         self._stall_timeout = check_stall_timeout(stall_timeout)
         if watch_threads:

@@ -64,3 +64,16 @@ class VirtualTimeSource(TimeSource):
     def describe(self) -> str:
         """``"virtual time"``, for messages."""
         return "virtual time"
+
+
+def source_or_virtual(source: object) -> TimeSource:
+    """``source`` if it is a :class:`TimeSource`, a new :class:`VirtualTimeSource` for
+    ``None``; anything else is an :class:`InvalidTypeError`."""
+    if source is None:
+        return VirtualTimeSource()
+    if not isinstance(source, TimeSource):
+        raise InvalidTypeError(
+            f"source must be a TimeSource (e.g. VirtualTimeSource(), PyBulletTimeSource(...)), "
+            f"got {type(source).__name__}"
+        )
+    return source
