@@ -508,6 +508,16 @@ def parse_seeds(text: str, *, count: bool = False, option: str = "--seeds") -> l
     return seeds
 
 
+def _is_positive_seconds(value: object) -> bool:
+    """Whether ``value`` is a positive, finite int or float (a bool is not a number here)."""
+    return (
+        isinstance(value, int | float)
+        and not isinstance(value, bool)
+        and math.isfinite(value)
+        and value > 0
+    )
+
+
 def plan(
     scenario: str,
     seeds: Sequence[int],
@@ -532,12 +542,7 @@ def plan(
     """
     if not seeds:
         raise InvalidArgumentError("a sweep needs at least one seed")
-    if until is not None and (
-        isinstance(until, bool)
-        or not isinstance(until, int | float)
-        or not math.isfinite(until)
-        or until <= 0
-    ):
+    if until is not None and not _is_positive_seconds(until):
         raise InvalidArgumentError(f"--until must be a positive number of seconds, got {until!r}")
     params = params or {}
     names = list(params)
@@ -824,12 +829,7 @@ def sweep(
         raise InvalidArgumentError("--address is the Ray cluster's: use it with --backend ray")
     if not specs:
         raise InvalidArgumentError("nothing to sweep: no runs planned")
-    if run_timeout is not None and (
-        isinstance(run_timeout, bool)
-        or not isinstance(run_timeout, int | float)
-        or not math.isfinite(run_timeout)
-        or run_timeout <= 0
-    ):
+    if run_timeout is not None and not _is_positive_seconds(run_timeout):
         raise InvalidArgumentError(
             f"--run-timeout must be a positive number of wall seconds, got {run_timeout!r}"
         )
