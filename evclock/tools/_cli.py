@@ -335,9 +335,9 @@ def run_command(
         check_seed(seed)
         check_until(until)
         pace = parse_rtf(rtf)
-        # An unknown scenario, or an engine it does not run on or that is not installed,
-        # fails here, before any output.
-        require_engine(load_scenario(scenario), engine)
+        # Usage errors first (the arguments alone decide them), then what this machine lacks
+        # (an extra, the engine), all before any output.
+        scenario_cls = load_scenario(scenario)
         ros2_options = ros2_cli.options_from_cli(
             ros2_clock,
             ros_domain_id,
@@ -355,7 +355,6 @@ def run_command(
 
             for module in ros2_options.extras:  # the ros2 extra: fail before any run
                 require(module)
-            console.print(ros2_options.describe(), soft_wrap=True)
         if wall and pace is not None:
             raise InvalidArgumentError("--wall runs in real time: drop --rtf (or use --rtf max)")
         for path, option in ((json_out, "--json"), (record, "--record")):
@@ -381,14 +380,22 @@ def run_command(
                 "--serve runs the scenario as registered: drop --param "
                 "(the joined controllers could not know about them)"
             )
+        given_token = None
+        if serve is not None:
+            from evclock.tools._cli_remote import cli_token
+
+            given_token = cli_token(serve, "--serve", token_file)
         if record is not None:
             from evclock.tools._record import mcap_writer_class
 
             mcap_writer_class()
+        require_engine(scenario_cls, engine)
+        if ros2_options is not None:
+            console.print(ros2_options.describe(), soft_wrap=True)
         from evclock.tools._record import foxglove_option
 
         live, pace = foxglove_option(foxglove, foxglove_addr, pace, serve=serve)
-        token, written = _serve_token(serve, token_file)
+        token, written = _serve_token(serve, given_token)
         recorded_before = file_identity(record)
         with _removed(written), progress_bar(None, quiet) as progress, live:
             if serve is not None:
@@ -434,13 +441,14 @@ def run_command(
     raise typer.Exit(exit_code(report))
 
 
-def _serve_token(serve: str | None, token_file: Path | None) -> tuple[str | None, Path | None]:
-    """The token ``--serve`` serves with; a fresh one's file is announced on stderr."""
+def _serve_token(serve: str | None, given: str | None) -> tuple[str | None, Path | None]:
+    """The token ``--serve`` serves with (``given``, from --token-file or EVCLOCK_TOKEN, or a
+    fresh one whose file is announced on stderr)."""
     if serve is None:
         return None, None
     from evclock.tools._cli_remote import serve_token
 
-    token, written = serve_token(serve, token_file)
+    token, written = serve_token(serve, given)
     if written is not None:
         typer.echo(
             f"evclock: the clock token of {serve} is in {written} (mode 0600, removed when "

@@ -45,7 +45,13 @@ from evclock.remote._mujoco_physics import MjDataService, RemoteMjData
 from evclock.remote._participant import participant
 from evclock.remote._physics import PhysicsService, RemotePhysics
 from evclock.remote._server import DEFAULT_STEP_TIMEOUT, Message, serve
-from evclock.remote._token import ENV_TOKEN, new_token, token_from, write_token_file
+from evclock.remote._token import (
+    ENV_TOKEN,
+    check_token,
+    new_token,
+    token_from,
+    write_token_file,
+)
 
 if TYPE_CHECKING:
     from rich.progress import Progress
@@ -85,18 +91,20 @@ def cli_token(address: str, option: str, token_file: Path | None) -> str | None:
             f"and pass it with --token-file PATH (a file only you can read: chmod 600) or in "
             f"the {ENV_TOKEN} environment variable"
         )
-    return token_from(token_file)
+    token = token_from(token_file)
+    if token is not None:
+        check_token(token)  # a weak one is a usage error here, before anything is built
+    return token
 
 
-def serve_token(address: str, token_file: Path | None) -> tuple[str | None, Path | None]:
+def serve_token(address: str, token: str | None) -> tuple[str | None, Path | None]:
     """The token ``evclock run --serve ADDR`` serves with, and the file it wrote it to.
 
-    The token of ``--token-file`` or ``EVCLOCK_TOKEN`` if given (no file written); otherwise,
-    on TCP and TLS, a fresh 256-bit token written to a new 0600 file of the private directory
-    (the caller prints its path and removes the file when the run ends); on a Unix socket,
-    none.
+    ``token`` (from ``--token-file`` or ``EVCLOCK_TOKEN``: :func:`cli_token`) if given, no
+    file written; otherwise, on TCP and TLS, a fresh 256-bit token written to a new 0600 file
+    of the private directory (the caller prints its path and removes the file when the run
+    ends); on a Unix socket, none.
     """
-    token = cli_token(address, "--serve", token_file)
     if token is not None or urllib.parse.urlsplit(address).scheme not in ("tcp", "tls"):
         return token, None
     token = new_token()
@@ -384,16 +392,16 @@ def control_scenario(
         given = {key: value for key, value in verify.items() if value is not None}
         clock_url = f"{clock_url}{'&' if '?' in clock_url else '?'}{urllib.parse.urlencode(given)}"
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
-    cls = scenario_class(name, {} if policy is None else {"policy": policy})
-    require_engine(cls, engine)
-    limit = _limit(cls, until)
-    scenario = _private_copy(cls, seed, engine)
     if parsed.scheme in ("tcp", "tls") and token is None and parsed.token is None:
         raise InvalidArgumentError(
             f"joining the simulation at {parsed} over {parsed.scheme} needs its token: pass "
             "the file "
             f"`evclock run --serve` printed with --token-file PATH, or set {ENV_TOKEN}"
         )
+    cls = scenario_class(name, {} if policy is None else {"policy": policy})
+    require_engine(cls, engine)
+    limit = _limit(cls, until)
+    scenario = _private_copy(cls, seed, engine)
 
     async def main() -> RunReport:
         link = participant()

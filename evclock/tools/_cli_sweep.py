@@ -442,6 +442,10 @@ def sweep_command(
             else parse_seeds(seeds or "10", count=True)
         )
         specs = plan(scenario, chosen, parse_params(scenario, param or []), until, engine)
+        if backend == "ray":  # the backend's extra, as every other extra, before the engine
+            from evclock.tools._sweep import _ray
+
+            _ray()
         # Before anything runs: the engine, installed here unless a Ray cluster runs the runs.
         (require_engine if address is None else check_engine)(load_scenario(scenario), engine)
         done = 0 if directory is None else len(directory.finished(specs))

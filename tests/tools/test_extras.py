@@ -290,12 +290,12 @@ _BUNDLED = (
         ),
         (
             ("pybullet",),
-            ["control", "husky", "--clock", "tcp://127.0.0.1:9"],
+            ["control", "husky", "--clock", "unix:///nonexistent/sim.sock"],
             _BUNDLED.format(name="husky"),
         ),
         (
             ("pybullet",),
-            ["control", "light_scenario:Light", "--clock", "tcp://127.0.0.1:9"],
+            ["control", "light_scenario:Light", "--clock", "unix:///nonexistent/sim.sock"],
             _BUNDLED.format(name="light"),
         ),
         (
