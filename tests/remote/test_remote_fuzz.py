@@ -22,6 +22,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
+import subprocess
 from pathlib import Path
 from typing import Any
 
@@ -56,6 +57,19 @@ async def main():
     print(json.dumps(seen), flush=True)
 evclock.run(main())
 """
+
+
+async def _join_honest_pair(
+    server: Any, tmp_path: Path, url: str, honest: list[subprocess.Popen[str]]
+) -> None:
+    """Start the two honest participants, one after the other (data of one time is
+    delivered in join order), each joined before the next starts."""
+    for me, other, step in (("a", "b", "0.001"), ("b", "a", "0.0015")):
+        honest.append(
+            spawn(tmp_path, HONEST, me, other, step, EVCLOCK_CLOCK=f"{url}?name={me}&token={TOKEN}")
+        )
+        await server.wait_for_participants(me, timeout=30)
+
 
 #: Joins by hand (the handshake with the token), sends the frames in the file argv[2] (a
 #: JSON list of hex strings) one by one, answering grants meanwhile, finishes its step, leaves.
@@ -242,19 +256,7 @@ def run_simulation(tmp_path: Path, fuzz: list[bytes] | None, mode: int) -> list[
                     str(mode),
                     TOKEN=TOKEN,
                 )
-            # One after the other: data of one time is delivered in join order.
-            for me, other, step in (("a", "b", "0.001"), ("b", "a", "0.0015")):
-                honest.append(
-                    spawn(
-                        tmp_path,
-                        HONEST,
-                        me,
-                        other,
-                        step,
-                        EVCLOCK_CLOCK=f"{url}?name={me}&token={TOKEN}",
-                    )
-                )
-                await server.wait_for_participants(me, timeout=30)
+            await _join_honest_pair(server, tmp_path, url, honest)
             await server.wait_until_left("a", "b")
             record.append(["end", clock.now().nanoseconds])
             if fuzz is not None:
@@ -413,18 +415,7 @@ def run_with_handshakes(tmp_path: Path, tries: list[bytes]) -> tuple[list[object
                     topic,
                     lambda m: record.append([m.sender, m.topic, m.time.nanoseconds, m.data.hex()]),
                 )
-            for me, other, step in (("a", "b", "0.001"), ("b", "a", "0.0015")):
-                honest.append(
-                    spawn(
-                        tmp_path,
-                        HONEST,
-                        me,
-                        other,
-                        step,
-                        EVCLOCK_CLOCK=f"{url}?name={me}&token={TOKEN}",
-                    )
-                )
-                await server.wait_for_participants(me, timeout=30)
+            await _join_honest_pair(server, tmp_path, url, honest)
             await server.wait_until_left("a", "b")
             record.append(["end", clock.now().nanoseconds])
             # Served until the client has made every attempt.

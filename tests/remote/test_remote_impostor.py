@@ -11,6 +11,7 @@ impostor's own socket timeouts).
 from __future__ import annotations
 
 import secrets
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -67,18 +68,26 @@ open(sys.argv[2], "wb").write(received)
 TOKEN = secrets.token_urlsafe(32)
 
 
-def _run_impostor(tmp_path: Path, answer: bytes, timeout: float = 10) -> tuple[int, str, bytes]:
-    """The victim's exit code and stderr, and every byte the impostor received."""
-    dump = tmp_path / "received.bin"
-    impostor = spawn(tmp_path, IMPOSTOR, answer.hex(), str(dump), "2")
-    words = read_line(impostor).split()
+def _victim_of(
+    server: subprocess.Popen[str], tmp_path: Path, timeout: float
+) -> tuple[int, str, str]:
+    """A participant with the token joining ``server`` (which prints the port it listens
+    on): its exit code, stdout and stderr."""
+    words = read_line(server).split()
     assert words[0] == "listening", words
     victim = spawn(
         tmp_path,
         VICTIM,
         EVCLOCK_CLOCK=f"tcp://127.0.0.1:{words[1]}?name=victim&token={TOKEN}&timeout={timeout}",
     )
-    code, out, err = finish(victim)
+    return finish(victim)
+
+
+def _run_impostor(tmp_path: Path, answer: bytes, timeout: float = 10) -> tuple[int, str, bytes]:
+    """The victim's exit code and stderr, and every byte the impostor received."""
+    dump = tmp_path / "received.bin"
+    impostor = spawn(tmp_path, IMPOSTOR, answer.hex(), str(dump), "2")
+    code, out, err = _victim_of(impostor, tmp_path, timeout)
     assert "joined at" not in out
     impostor_code, _, impostor_err = finish(impostor)
     assert impostor_code == 0, impostor_err
@@ -178,14 +187,7 @@ def test_what_the_server_says_reaches_the_participant_escaped_and_bounded(
     # it reaches the participant's error: no forged line, no 1 MB message.
     forged = "stopped\nevclock.remote.JoinRefusedError: forged"
     server = spawn(tmp_path, PROVEN, TOKEN, forged, "1000000")
-    words = read_line(server).split()
-    assert words[0] == "listening", words
-    victim = spawn(
-        tmp_path,
-        VICTIM,
-        EVCLOCK_CLOCK=f"tcp://127.0.0.1:{words[1]}?name=victim&token={TOKEN}&timeout=10",
-    )
-    code, _, err = finish(victim)
+    code, _, err = _victim_of(server, tmp_path, 10)
     assert code == 1
     last = err.strip().splitlines()[-1]
     assert last.startswith("evclock.ClockLostError: stopped\\nevclock.remote.JoinRefusedError")

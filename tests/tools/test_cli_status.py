@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 import pytest
+from _cli import run_evclock
 
 import evclock
 from evclock.tools._cli_app import EXIT_STATUS_HELP
@@ -64,14 +65,7 @@ def raising(tmp_path: Path) -> str:
 
 
 def evclock_cli(*args: str, cwd: Path = ROOT) -> subprocess.CompletedProcess[str]:
-    return subprocess.run(
-        [sys.executable, "-m", "evclock", *args],
-        capture_output=True,
-        text=True,
-        timeout=TIMEOUT,
-        check=False,
-        cwd=cwd,
-    )
+    return run_evclock(*args, cwd=cwd)
 
 
 def test_success_is_0_and_no_banner_reaches_the_terminal(tmp_path: Path) -> None:
