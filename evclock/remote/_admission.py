@@ -3,8 +3,9 @@
 A new connection is *pending* until its handshake completes: it is read with the
 pre-authentication frame limit (``proto.PRE_AUTH_MAX_FRAME``), it has ``PRE_HELLO_TIMEOUT``
 wall seconds to send its HELLO and ``HELLO_TIMEOUT`` to finish, and at most ``MAX_PENDING``
-connections are pending at once: a new one then evicts the oldest pending one (told busy, it
-retries), so that connections that never finish cannot keep an honest participant out. On a
+connections are pending at once: a new one then evicts the oldest pending one that has sent
+no HELLO, else the oldest (told busy, it retries), so that connections that never finish
+cannot keep an honest participant out. On a
 Unix socket the peer's user id (``SO_PEERCRED``) must be one the server admits. The handshake
 is HELLO -> CHALLENGE (the server's proof first) -> PROOF -> WELCOME or REFUSE; a
 participant that passed it joins (``_on_hello``) and is read with the documented frame
@@ -117,10 +118,13 @@ class Admission(ServerCore):
                     )
                     continue
             if len(self._pending) >= MAX_PENDING:
+                # The oldest that has not sent its HELLO goes first: a flood of silent
+                # connections, however fast, never evicts one that is in its handshake.
+                silent = next((other for other in self._pending if not other.greeted), None)
                 self._refuse(
-                    self._pending[0],
+                    self._pending[0] if silent is None else silent,
                     f"evicted: {MAX_PENDING} connections were in their handshake and this was "
-                    "the oldest; try again",
+                    f"the oldest{'' if silent is None else ' that had sent no HELLO'}; try again",
                     proto.REFUSE_BUSY,
                 )
             peer.tls_waiting = self._tls is not None
