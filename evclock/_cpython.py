@@ -154,6 +154,19 @@ def task_waiter(task: asyncio.Task[Any]) -> Any:
     return getattr(task, "_fut_waiter", UNKNOWN)
 
 
+def drop_caller_frame(handle: asyncio.Handle) -> None:
+    """Remove the last frame of ``Handle._source_traceback`` (kept in debug mode only).
+
+    Why: asyncio's ``call_soon_threadsafe`` drops its own frames so that a handle's source
+    traceback ends at its caller; ``SimEventLoop`` overrides it (to note a wake-up from
+    another thread), so its own frame would be the last one left (CPython's
+    ``test_handle_source_traceback`` checks the caller's). If the field went away, nothing
+    is dropped and the traceback keeps one frame more."""
+    source = getattr(handle, "_source_traceback", None)
+    if source:
+        del source[-1]
+
+
 def loop_ready_queue(loop: asyncio.AbstractEventLoop) -> Any:
     """``BaseEventLoop._ready``: the deque of ready handles of a loop evclock does not own
     (``SimDriver`` checks it between physics steps); None for a loop without one (uvloop)."""

@@ -35,6 +35,7 @@ from collections.abc import Callable, Iterator
 from typing import TYPE_CHECKING, Any, TypeVar, TypeVarTuple, Unpack
 
 from evclock._cpython import (
+    drop_caller_frame,
     fd_to_key,
     log_slow_callback,
     running_loop,
@@ -341,6 +342,8 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         """asyncio's, and the loop polls its I/O before the callback runs (see _run_once)."""
         handle = super().call_soon_threadsafe(callback, *args, context=context)
         self._woken_from_outside = True  # after it is queued: at worst one poll too many
+        if self._debug:
+            drop_caller_frame(handle)  # its source traceback ends at the caller, as asyncio's
         return handle
 
     def call_later(
