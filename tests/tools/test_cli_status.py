@@ -9,11 +9,10 @@ import json
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
-from _cli import run_evclock
+from _cli import interrupt_when, run_evclock
 
 import evclock
 from evclock.tools._cli_app import EXIT_STATUS_HELP
@@ -174,17 +173,7 @@ def test_ctrl_c_prints_the_partial_report_and_exits_130(raising: str, tmp_path: 
          "--param", f"marker={marker}", "--json", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT,
     )  # fmt: skip
-    try:
-        deadline = time.monotonic() + TIMEOUT / 2
-        while not marker.exists() and time.monotonic() < deadline and proc.poll() is None:
-            time.sleep(0.05)
-        assert marker.exists(), proc.communicate(timeout=10)
-        proc.send_signal(signal.SIGINT)
-        stdout, stderr = proc.communicate(timeout=TIMEOUT / 4)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate(timeout=10)
+    stdout, stderr = interrupt_when(marker, proc)
     assert proc.returncode == 130, stdout + stderr
     text = " ".join(stdout.split())
     assert "raising (seed 0): INTERRUPTED by Ctrl-C at " in text
