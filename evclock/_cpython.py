@@ -91,34 +91,16 @@ ASYNCIO_PRIVATES: Final[dict[str, tuple[str, tuple[str, ...]]]] = {
         "that cancel() reports what to purge",
         ("kernel/_core.py", "hosts/_loop.py"),
     ),
-    "_cancelled": (
-        "Handle: cancelled",
-        ("kernel/_core.py", "kernel/_park.py", "hosts/_loop.py"),
-    ),
+    "_cancelled": ("Handle: cancelled", ("kernel/_core.py", "hosts/_loop.py")),
     "_callback": ("Handle: the callback", ("kernel/_core.py", "hosts/_loop.py")),
-    "_args": (
-        "Handle: the callback's arguments",
-        ("kernel/_core.py", "kernel/_park.py", "hosts/_loop.py"),
-    ),
+    "_args": ("Handle: the callback's arguments", ("kernel/_core.py", "hosts/_loop.py")),
     "_when": (
         "TimerHandle: when, in loop time; rewritten when sim time jumps",
         ("kernel/_core.py", "hosts/_loop.py"),
     ),
     "_context": ("Handle: the contextvars context", ("hosts/_loop.py",)),
-    "_repr": ("Handle: the cached repr (debug mode)", ("kernel/_park.py", "hosts/_loop.py")),
-    "_source_traceback": (
-        "Handle, Task: the creation traceback (debug mode)",
-        ("kernel/_park.py", "hosts/_loop.py"),
-    ),
-    "_must_cancel": (
-        "Task: cancel() was called while it ran (read only). A parking task with one "
-        "pending waits on a future instead, as asyncio's Task cancels it at once",
-        ("kernel/_core.py",),
-    ),
-    "_task_factory": (
-        "BaseEventLoop: the task factory (None: the default); create_task makes a SimTask then",
-        ("hosts/_loop.py",),
-    ),
+    "_repr": ("Handle: the cached repr (debug mode)", ("hosts/_loop.py",)),
+    "_source_traceback": ("Handle: the creation traceback (debug mode)", ("hosts/_loop.py",)),
     "_ready": (
         "BaseEventLoop: the deque of ready handles; the loop runs them as _run_once does",
         ("hosts/_loop.py",),

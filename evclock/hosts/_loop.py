@@ -53,7 +53,6 @@ from evclock._errors import (
 from evclock.hosts._tasks import describe_tasks
 from evclock.kernel._core import DEADLOCK, HELD, MOVED, PACING, WAIT_IO, SimCore
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, PacingControls
-from evclock.kernel._park import SimTask
 from evclock.kernel._source import TimeSource
 from evclock.kernel._virtual import source_or_virtual
 from evclock.outside._threads import (
@@ -202,10 +201,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
     # A loop whose __init__ failed before asyncio's ran (a bad argument) counts as closed, so
     # that its __del__ has nothing to complain about; asyncio's __init__ sets it to False.
     _closed = True
-    #: Whether the default task factory makes :class:`SimTask` (sim-time waits park the
-    #: task, with no future); False: asyncio's ``Task`` (the future path). For tests that
-    #: compare the two paths.
-    _park_tasks = True
 
     def __init__(
         self,
@@ -232,11 +227,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             source, self, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall
         )
         core.future_factory = self._refuse_wait
-        core.parks = self._park_tasks
-        # The park note (kernel/_core.park): the task whose next call_soon, from its own
-        # bare yield, files its step at _park_when instead of the ready queue.
-        self._parking: SimTask | None = None
-        self._park_when = 0
         source.attach(core)  # may refuse (a source drives one host): before the selector too
         super().__init__(selector)  # (calls set_debug: get_debug is set there)
         self._source = source
@@ -342,42 +332,6 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         return clock
 
     # ------------------------------------------------------------ scheduling
-
-    def create_task(self, coro: Any, *, name: object = None, context: Any = None) -> Any:
-        """As asyncio's; without a task factory, the task is a :class:`SimTask` (asyncio's
-        ``Task``, whose sim-time waits park it with no future: evclock/kernel/_park.py)."""
-        if self._task_factory is not None or not self._park_tasks:  # type: ignore[attr-defined]
-            return super().create_task(coro, name=name, context=context)
-        self._check_closed()
-        task: Any = SimTask(coro, loop=self, name=name, context=context)  # type: ignore[arg-type]
-        if task._source_traceback:
-            del task._source_traceback[-1]
-        return task
-
-    def call_soon(
-        self,
-        callback: Callable[[Unpack[_Ts]], object],
-        *args: *_Ts,
-        context: contextvars.Context | None = None,
-    ) -> asyncio.Handle:
-        """As asyncio's. The one call a parking task makes (its own step, right after the
-        bare yield of ``park``) is filed in the kernel's schedule at the park's deadline."""
-        task: Any = self._parking
-        if task is not None:
-            self._parking = None  # the note is for this call only
-            if getattr(callback, "__self__", None) is task:
-                entry: Any = task.parked  # type: ignore[union-attr]  # (task is not None)
-                entry._callback = callback
-                entry._context = context
-                entry._scheduled = True
-                when = self._park_when
-                core = self._core
-                if core.at.setdefault(when, entry) is entry:  # SimCore.schedule, inlined
-                    _heappush(core.heap, when)
-                else:
-                    core.schedule(when, entry)
-                return entry  # type: ignore[no-any-return]
-        return super().call_soon(callback, *args, context=context)
 
     def call_soon_threadsafe(
         self,

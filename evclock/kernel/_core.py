@@ -45,15 +45,13 @@ import heapq
 import itertools
 import operator
 import time
-import types
-from collections.abc import Awaitable, Callable, Generator
+from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Final, Protocol
 
 from evclock._cpython import SET_RESULT_UNLESS_CANCELLED, running_loop
 from evclock._errors import ClockJumpedError, InvalidArgumentError
 from evclock.kernel._jumps import JumpHandle, TimeJump
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, Pacer
-from evclock.kernel._park import Parked, SimTask
 from evclock.kernel._source import TimeSource
 from evclock.kernel._virtual import VirtualTimeSource
 from evclock.time._time import (
@@ -93,7 +91,6 @@ class _Bucket(list[Any]):
 _Future = asyncio.Future
 # A future created with no loop= on the running loop is bound to it, found in C.
 _running_loop = running_loop
-_current_task = asyncio.current_task
 # asyncio.sleep() schedules this function through call_later(); the kernel recognises it to
 # resolve the sleep's future exactly as the handle would.
 _SET_RESULT_UNLESS_CANCELLED = SET_RESULT_UNLESS_CANCELLED
@@ -114,14 +111,12 @@ _heappop = heapq.heappop
 _PURGE_AT: Final = 64
 
 
-def clock_sleep(clock: SimClock, duration: float | Duration) -> Awaitable[None]:
+def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[None]:
     """Wait ``duration`` (seconds or a :class:`Duration`) of sim time: ``SimClock.sleep``.
 
     Every controller's hot path, so it lives here, in one frame: it converts the duration
-    and pushes the wait on the kernel's heap - or, for a task the loop made, returns the
-    :func:`park` that files the task's own step there (no future). Negative, NaN and
-    infinite durations raise :class:`InvalidArgumentError`, as does a wait beyond sim
-    time's range.
+    and pushes the wait on the kernel's heap. Negative, NaN and infinite durations raise
+    :class:`InvalidArgumentError`, as does a wait beyond sim time's range.
     """
     if type(duration) is float and 0.0 <= duration < 1e9:
         ns = _round_float(duration * 1e9)
@@ -133,8 +128,6 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> Awaitable[None]:
         raise InvalidArgumentError(format_time_range_error("the wait", when))
     loop = core.future_loop
     if loop is not None and _running_loop() is loop:
-        if core.parks:
-            return park(core, loop, when)
         # on the running loop, found in C (a loop= keyword costs a dict on every call)
         fut: asyncio.Future[None] = _Future()
     else:
@@ -148,23 +141,15 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> Awaitable[None]:
     return fut
 
 
-def clock_sleep_until(clock: SimClock, when_ns: int) -> Awaitable[None]:
+def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
     """Wait until sim time reaches ``when_ns`` (at least now): ``SimClock.sleep_until_ns``,
-    the hot path of rates and timers (a :func:`park` for a task the loop made)."""
+    the hot path of rates and timers."""
     core = clock.core
     now = core.now_ns
     if when_ns < now:
         when_ns = now
     elif when_ns > MAX_TIME_NS:
         raise InvalidArgumentError(format_time_range_error("the wait", when_ns))
-    loop = core.future_loop
-    if core.parks and loop is not None and _running_loop() is loop:
-        return park(core, loop, when_ns)
-    return sleep_future(core, when_ns)
-
-
-def sleep_future(core: SimCore, when_ns: int) -> asyncio.Future[None]:
-    """The future of a sim-time wait until ``when_ns``, scheduled (the future path)."""
     loop = core.future_loop
     if loop is not None and _running_loop() is loop:
         # on the running loop, found in C (a loop= keyword costs a dict on every call)
@@ -178,38 +163,6 @@ def sleep_future(core: SimCore, when_ns: int) -> asyncio.Future[None]:
     if when_ns < core.notify_before:
         core.host.interrupt_wait()
     return fut
-
-
-@types.coroutine
-def park(core: SimCore, loop: Any, when_ns: int) -> Generator[None, None, None]:
-    """Wait until ``when_ns`` with no future: the awaiting task parks (kernel/_park.py).
-
-    A :class:`SimTask` (what the loop makes) notes on the loop that it parks until
-    ``when_ns`` and yields None (a bare ``yield``); the task answers that bare yield with
-    ``loop.call_soon(its step)``, which the loop files at ``when_ns`` (the note is for that
-    very call). Any other task, or one whose cancellation is pending (``cancel()`` while
-    it ran), waits on a future, exactly as on the future path.
-    """
-    if when_ns < core.now_ns:
-        return  # awaited after its deadline (made earlier): over, as its future would be
-    task = _current_task(loop)
-    if type(task) is not SimTask or task._must_cancel:  # type: ignore[attr-defined]
-        yield from sleep_future(core, when_ns)
-        return
-    entry = task.parked
-    if entry is None or entry._cancelled:
-        entry = task.parked = Parked(loop, None)
-    loop._parking = task
-    loop._park_when = when_ns
-    try:
-        yield  # the task's step is filed at when_ns by loop.call_soon
-    except BaseException:
-        entry.error = None  # a cancellation thrown in by the task's step, as asyncio's
-        raise
-    error = entry.error
-    if error is not None:
-        entry.error = None
-        raise error
 
 
 class CoreHost(Protocol):
@@ -344,8 +297,6 @@ class SimCore:
         #: Or, faster, the loop a plain future is created on when waits are possible there
         #: with no further check (an open SimEventLoop); None: use ``future_factory``.
         self.future_loop: asyncio.AbstractEventLoop | None = None
-        #: Whether the host files parked tasks' steps (:func:`park`): a SimEventLoop.
-        self.parks = False
         self._anything_runnable = host.anything_runnable
         # The default source moves exactly to any later target it is given: the hot path
         # (wake_next) moves it itself instead of calling its advance() (exact type only: a
@@ -524,21 +475,9 @@ class SimCore:
         (every future resolved first, so each step sees the others' futures done, as on
         stock asyncio).
         """
-        in_place: list[tuple[Any, Any, asyncio.Future[Any] | None]] | None = None if ready else []
+        in_place: list[tuple[Any, Any, asyncio.Future[Any]]] | None = None if ready else []
         for obj in due:
             if obj is _STOP:
-                continue
-            if type(obj) is Parked:
-                # a parked task's step: where its future's wake-up would be queued
-                obj._scheduled = False
-                if obj._cancelled:
-                    self.cancelled_timers -= 1
-                    continue
-                step, obj._callback = obj._callback, None
-                if in_place is None:
-                    ready.append(asyncio.Handle(step, (), self.host, obj._context))  # type: ignore[arg-type]
-                else:
-                    in_place.append((step, obj._context, None))
                 continue
             if not isinstance(obj, _TimerHandle):
                 if obj.done():
@@ -575,24 +514,19 @@ class SimCore:
         """Queue collected wake-ups at the end of the ready queue, in order."""
         loop = self.host
         for callback, ctx, fut in wakeups:
-            args = () if fut is None else (fut,)  # None: a parked task's step
-            ready.append(asyncio.Handle(callback, args, loop, ctx))  # type: ignore[arg-type]
+            ready.append(asyncio.Handle(callback, (fut,), loop, ctx))  # type: ignore[arg-type]
 
     def _run_wakeups(self, wakeups: list[tuple[Any, Any, Any]], ready: Any) -> None:
         """Run collected wake-ups in place, in order (what would run next anyway); if one
         raises SystemExit or KeyboardInterrupt, the rest are queued first, as they were."""
         for i, (callback, ctx, fut) in enumerate(wakeups):
             try:
-                if fut is None:
-                    ctx.run(callback)  # a parked task's step
-                else:
-                    ctx.run(callback, fut)
+                ctx.run(callback, fut)
             except (SystemExit, KeyboardInterrupt):
                 rest = wakeups[i + 1 :]
                 loop = self.host
                 for callback, ctx, fut in reversed(rest):
-                    args = () if fut is None else (fut,)
-                    ready.appendleft(asyncio.Handle(callback, args, loop, ctx))  # type: ignore[arg-type]
+                    ready.appendleft(asyncio.Handle(callback, (fut,), loop, ctx))  # type: ignore[arg-type]
                 raise
             except BaseException as exc:
                 self._report_wakeup_error(exc)
@@ -700,22 +634,7 @@ class SimCore:
             when = heap[0]
             if when > self.now_ns:
                 obj = at[when]
-                if type(obj) is Parked:
-                    if not obj._cancelled:
-                        # A parked task's step (no future): run it now.
-                        virtual.now_ns = self.now_ns = when
-                        _heappop(heap)
-                        del at[when]
-                        obj._scheduled = False
-                        step, obj._callback = obj._callback, None
-                        try:
-                            obj._context.run(step)
-                        except (SystemExit, KeyboardInterrupt):
-                            raise
-                        except BaseException as exc:
-                            self._report_wakeup_error(exc)
-                        return True
-                elif type(obj) is _Future:
+                if type(obj) is _Future:
                     fut, result = obj, None
                 elif (
                     isinstance(obj, _TimerHandle) and obj._callback is _SET_RESULT_UNLESS_CANCELLED
@@ -855,15 +774,11 @@ class SimCore:
         self.now_ns = after_ns
         delta = after_ns - before_ns
         kept = []
-        woken: list[Any] = []
+        woken: list[asyncio.Future[None]] = []
         for when_ns, obj in self._entries():
             if obj is _STOP:
                 if when_ns > after_ns:
                     kept.append((when_ns, obj))
-            elif type(obj) is Parked:
-                obj._scheduled = False  # out of the schedule (rebuilt below without it)
-                if not obj._cancelled:
-                    woken.append(obj)
             elif isinstance(obj, _TimerHandle):
                 if obj._cancelled:
                     obj._scheduled = False
@@ -879,10 +794,7 @@ class SimCore:
         settled, self._settled = self._settled, []
         woken.extend(fut for _, _, fut in settled if not fut.done())
         for fut in woken:
-            if type(fut) is Parked:
-                fut.wake_now(ClockJumpedError(jump))  # as its future's set_exception
-            else:
-                fut.set_exception(ClockJumpedError(jump))
+            fut.set_exception(ClockJumpedError(jump))
         self.pacer.reanchor()
         self.host.interrupt_wait()
         for handler in handlers:

@@ -361,19 +361,20 @@ def test_call_later_odd_delays_behave_as_documented() -> None:
 
 
 def test_futures_of_the_loop_are_bound_to_it_inside_and_outside_its_run() -> None:
-    """create_future makes futures of this loop whether it runs (the fast construction,
-    from the running loop) or not."""
+    """create_future and clock.sleep make futures of this loop whether it runs (the fast
+    construction, from the running loop) or not."""
     loop = SimEventLoop()
     try:
         outside = loop.create_future()
         assert outside.get_loop() is loop
 
-        async def inside() -> Any:
+        async def inside() -> tuple[Any, Any]:
             fut = loop.create_future()
-            await evclock.clock().sleep(1.0)  # a park for a task the loop made: no future
-            return fut.get_loop()
+            sleep = evclock.clock().sleep(1.0)
+            await sleep
+            return fut.get_loop(), sleep.get_loop()  # type: ignore[attr-defined]
 
-        assert loop.run_until_complete(inside()) is loop
+        assert loop.run_until_complete(inside()) == (loop, loop)
         outside.cancel()
     finally:
         loop.close()

@@ -16,7 +16,6 @@ from asyncio import events, futures
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -220,10 +219,10 @@ def test_a_callback_scheduling_a_callback_runs_before_a_sleeper_due_with_it() ->
     assert on_sim == on_reference == ["A", "X", "task"]
 
 
-def test_a_sleep_awaited_by_several_tasks_through_a_task_wakes_each() -> None:
+def test_a_sleep_future_awaited_by_two_tasks_wakes_both() -> None:
     async def main() -> list[str]:
         woke: list[str] = []
-        shared = asyncio.ensure_future(evclock.clock().sleep(1.0))
+        shared = evclock.clock().sleep(1.0)
 
         async def waiter(name: str) -> None:
             await shared
@@ -319,30 +318,20 @@ def test_sleep_timers_whose_futures_ended_elsewhere_fire_as_on_stock_asyncio() -
     assert on_sim[0] == (1.0, "InvalidStateError")
 
 
-@pytest.mark.parametrize("park", [True, False], ids=["parked", "future"])
-def test_a_clock_sleep_awaited_after_its_deadline_is_over(
-    park: bool, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A sim-time wait made now and awaited after its deadline returns at once, on both
-    wake paths (its deadline was fixed when it was made)."""
-    monkeypatch.setattr(SimEventLoop, "_park_tasks", park)
+def test_a_clock_sleep_nobody_awaits_yet_still_ends_at_its_time() -> None:
+    """A sim-time wait created now and awaited later (no task waits on it when it is due)."""
 
-    async def main() -> tuple[float, list[str]]:
+    async def main() -> tuple[float, bool, float]:
         clock = evclock.clock()
-        order: list[str] = []
         early = clock.sleep(1.0)
         await clock.sleep(2.0)
+        done_at_two = early.done()
+        await early  # already over: no wait
+        return clock.now().seconds, done_at_two, 2.0
 
-        async def other() -> None:
-            order.append("other")
-
-        task = asyncio.get_running_loop().create_task(other())
-        await early  # already over: no wait, not even a yield
-        order.append("early")
-        await task
-        return clock.now().seconds, order
-
-    assert evclock.run(main()) == (2.0, ["early", "other"])
+    now, done_at_two, expected = evclock.run(main())
+    assert done_at_two is True
+    assert now == expected
 
 
 def _instant(loop: asyncio.AbstractEventLoop) -> asyncio.AbstractEventLoop:
