@@ -173,9 +173,9 @@ def serve_scenario(
     opened, scenario = open_world(cls, seed, engine=engine, gui=gui)
     source: Any = opened  # PyBullet's or MuJoCo's: a stepping source either way
     install_step_hooks(scenario, source)  # the world's per-step hooks run with the physics
-    from evclock.tools._record import open_recorder  # --record/--foxglove: the simulation's
+    from evclock.tools._record import open_recorder, world_of  # --record/--foxglove: the sim's
 
-    recorder = open_recorder(record, cls, seed, {}, limit)
+    recorder = open_recorder(record, cls, seed, {}, limit, world=world_of(source))
     info = {
         "scenario": cls.name,
         "seed": seed,

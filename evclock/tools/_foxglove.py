@@ -594,6 +594,12 @@ class LiveView:
     :param parameters: values shown as parameters (read-only).
     :param until_ns: the run's sim-time limit (the playback range Foxglove shows), or None for
         a wall-time run, which cannot be paused: then no controls are offered.
+    :param channels: the channels known before the run (topic -> schema and metadata): they
+        exist before the server accepts a client, so every client learns them when it
+        connects. A channel created later is advertised to the clients connected then, and
+        foxglove-sdk (0.30) sends that advertisement before it accepts subscriptions to the
+        channel: a client that subscribes at once may be refused ("Unknown channel ID") and
+        Foxglove does not ask again.
     :raises MissingExtraError: ``foxglove-sdk`` is not installed (``evclock[record]``).
     :raises InvalidArgumentError: the address is malformed or cannot be listened on.
     """
@@ -605,6 +611,7 @@ class LiveView:
         parameters: Mapping[str, Any],
         *,
         until_ns: int | None = None,
+        channels: Mapping[str, tuple[Mapping[str, Any], Mapping[str, str]]] | None = None,
     ) -> None:
         from evclock._extras import import_extra
 
@@ -624,6 +631,8 @@ class LiveView:
         host, port = parse_address(address)
         self._context = foxglove.Context()
         self._channels: dict[str, Any] = {}
+        for topic, (schema_of_topic, metadata) in (channels or {}).items():
+            self.channel(topic, schema_of_topic, metadata)
         self._controls: Any = None  # the loop's pause/resume/step, once attached
         self._now_ns = 0  # the last time broadcast
         self._wake_read: socket.socket | None = None

@@ -510,9 +510,9 @@ def _run_on_sim_time(
         raise
     install_step_hooks(scenario, source)
     try:
-        from evclock.tools._record import open_recorder  # to --record and/or --foxglove
+        from evclock.tools._record import open_recorder, world_of  # --record, --foxglove
 
-        recorder = open_recorder(record, cls, seed, params, limit)
+        recorder = open_recorder(record, cls, seed, params, limit, world=world_of(source))
     except BaseException:
         source.close()
         raise
@@ -612,7 +612,9 @@ def _run_on_wall_time(
         except Exception as exc:
             return _error_report(cls, seed, "wall", limit, output, exc)
         task_id = progress.add_task(cls.name, total=limit, rtf="1 (wall)") if progress else None
-        recorder = open_recorder(record, cls, seed, params or {}, limit, mode="wall")
+        recorder = open_recorder(
+            record, cls, seed, params or {}, limit, mode="wall", world=engine_world
+        )
         refresh_every = round(PHYSICS_HZ * _PROGRESS_PERIOD)
 
         before, after = step_hooks_of(scenario)
@@ -635,7 +637,7 @@ def _run_on_wall_time(
         async def main() -> RunReport:
             clk = clock()
             if recorder is not None:
-                recorder.attach(None, clk, scenario.state_vector, world=engine_world)
+                recorder.attach(None, clk, scenario.state_vector)
             start = clk.now().seconds
             physics = asyncio.create_task(world())
             outcome = _Outcome()
