@@ -182,6 +182,8 @@ def serve_scenario(
         "engine": engine,
         "until": limit,
         "remote_controllers": remote_controllers,
+        # exact, so the controllers' loop reports know their deadlines' quantisation
+        "physics_step_ns": [source.time_step_ns.numerator, source.time_step_ns.denominator],
     }
     handed: dict[str, Any] = {}
 
@@ -316,18 +318,27 @@ def _checked_report(data: bytes) -> dict[str, Any]:
 
 def _loops_from(data: list[dict[str, Any]], step_ns: Fraction) -> list[Any]:
     """The controllers' loop reports, each checked against this simulation's physics step."""
-    from evclock.kernel._rate import _period_fraction
-    from evclock.tools._runs import LoopReport
+    from evclock.tools._runs import loop_report
 
-    return [
-        LoopReport(
-            d["name"],
-            d["hz"],
-            d["stats"],
-            (_period_fraction(d["hz"]) / step_ns).denominator == 1,
+    return [loop_report(d["name"], d["hz"], d["stats"], step_ns) for d in data]
+
+
+def _served_step_ns(info: dict[str, Any], address: str) -> Fraction | None:
+    """The physics step a simulation serves (``physics_step_ns``: numerator and denominator,
+    in ns), or None from a server that does not say (evclock 0.2)."""
+    served = info.get("physics_step_ns")
+    if served is None:
+        return None
+    if (
+        not isinstance(served, list)
+        or len(served) != 2
+        or not all(type(n) is int and n > 0 for n in served)
+    ):
+        raise InvalidArgumentError(
+            f"the simulation at {address} serves a malformed physics step {served!r}: "
+            "expected [numerator, denominator] in nanoseconds, two positive integers"
         )
-        for d in data
-    ]
+    return Fraction(served[0], served[1])
 
 
 def _joining(url: str, name: str, token: str | None) -> str:
@@ -430,6 +441,7 @@ def control_scenario(
             scenario.world.data = RemoteMjData(link, scenario.world.data)
         else:
             scenario.pb = RemotePhysics(link)
+        step_ns = _served_step_ns(link.info, link.address)
         clk = clock()
         wall0 = time.perf_counter()
         outcome = _Outcome()
@@ -448,9 +460,10 @@ def control_scenario(
             wall_time_s=wall_s,
             achieved_rtf=None,
             summary=scenario.summary(),
-            loops=_loop_reports(clk),
+            loops=_loop_reports(clk, step_ns),
             final_state=json.loads(link.call(STATE_SERVICE)),
             until_s=limit,
+            physics_step_s=None if step_ns is None else float(step_ns / 1_000_000_000),
         )
         outcome.apply(report)
         link.publish(REPORT_TOPIC, json.dumps(report.to_json()).encode())
