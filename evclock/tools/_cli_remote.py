@@ -399,10 +399,26 @@ def control_scenario(
             "controllers in lockstep"
         )
     verify = {"tls_ca": tls_ca, "tls_fingerprint": tls_fingerprint}
-    if any(value is not None for value in verify.values()):
-        given = {key: value for key, value in verify.items() if value is not None}
+    given = {key: value for key, value in verify.items() if value is not None}
+    if len(given) == 2:
+        raise InvalidArgumentError(
+            "--tls-ca and --tls-fingerprint are two ways to verify the simulation: give one "
+            "(--tls-ca for a certificate your CA signed, --tls-fingerprint for a self-signed one)"
+        )
+    if given and scheme != "tls":
+        raise InvalidArgumentError(
+            f"--tls-ca and --tls-fingerprint verify a simulation served on tls://, not "
+            f"{scheme}://: drop the option, or join it with --clock tls://HOST:PORT"
+        )
+    if given:
         clock_url = f"{clock_url}{'&' if '?' in clock_url else '?'}{urllib.parse.urlencode(given)}"
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
+    if parsed.scheme == "tls" and parsed.tls_ca is None and parsed.tls_fingerprint is None:
+        raise InvalidArgumentError(
+            f"joining the simulation at {parsed} needs a way to verify it: --tls-ca FILE (the "
+            "CA that signed its certificate) or --tls-fingerprint SHA256 (its certificate's "
+            "fingerprint)"
+        )
     if parsed.scheme in ("tcp", "tls") and token is None and parsed.token is None:
         raise InvalidArgumentError(
             f"joining the simulation at {parsed} over {parsed.scheme} needs its token: pass "
