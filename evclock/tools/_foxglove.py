@@ -41,6 +41,8 @@ WORLD_FRAME = "world"
 """The fixed frame every link pose is given in."""
 LAYOUT_FILE = Path(__file__).with_name("foxglove_layout.json")
 """The saved Foxglove layout shipped with evclock (3D panel, joint plots, log, timing)."""
+SCENE_TOPIC = "/evclock/scene"
+"""The robot's shapes, written once: the live view sends them again to each subscriber."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -637,8 +639,7 @@ class LiveView:
         self._now_ns = 0  # the last time broadcast
         self._wake_read: socket.socket | None = None
         self._wake_write: socket.socket | None = None
-        self._lock = threading.Lock()
-        self._resend_scene = threading.Event()
+        self._scene: bytes | None = None  # the scene as sent, for later subscribers
         self._parameters = [
             Parameter(f"/scenario/{key}", value=_parameter_value(value))
             for key, value in parameters.items()
@@ -689,8 +690,8 @@ class LiveView:
                 return playback(request)
 
             def on_subscribe(self, client: Any, channel: Any) -> None:
-                if channel.topic == "/evclock/scene":
-                    view._resend_scene.set()
+                if channel.topic == SCENE_TOPIC:
+                    view._send_scene_again()
 
             def on_get_parameters(
                 self, client: Any, param_names: list[str], request_id: str | None = None
@@ -787,7 +788,17 @@ class LiveView:
         payload: bytes,
     ) -> None:
         """Send one JSON message, stamped ``time_ns`` (sim time)."""
+        if topic == SCENE_TOPIC:
+            self._scene = payload  # before it is sent: a subscriber gets it either way
         self.channel(topic, schema, metadata).log(payload, log_time=time_ns)
+
+    def _send_scene_again(self) -> None:
+        """Send the scene to a new subscriber (on the server's thread: a paused run takes
+        no samples), stamped with the last sim time broadcast; before the first scene was
+        sent, the subscriber gets that one. Live only: never into a recording."""
+        scene, channel = self._scene, self._channels.get(SCENE_TOPIC)
+        if scene is not None and channel is not None:
+            channel.log(scene, log_time=self._now_ns)
 
     def tick(self, time_ns: int) -> None:
         """Broadcast the current sim time (Foxglove's timeline follows it).
@@ -796,14 +807,6 @@ class LiveView:
         """
         self._now_ns = time_ns
         self.server.broadcast_time(time_ns)
-
-    def scene_wanted(self) -> bool:
-        """Whether a client subscribed to the scene since it was last sent (then it is sent
-        again: the scene is written once, a late client would miss it)."""
-        if self._resend_scene.is_set():
-            self._resend_scene.clear()
-            return True
-        return False
 
     def close(self) -> None:
         """Stop serving."""

@@ -362,15 +362,6 @@ class Recorder:
             self._live.log(topic, channel.schema, channel.metadata, time_ns, payload)
         self._sequence += 1
 
-    def _send_live(self, topic: str, schema: Mapping[str, Any], time_ns: int, data: object) -> None:
-        """Send a message to the live view only: the file (and its sequence numbers) stays
-        what an unwatched run writes."""
-        if self._closed or self._live is None:
-            return
-        channel = self._channel(topic, schema)
-        payload = json.dumps(data, allow_nan=True).encode()
-        self._live.log(topic, channel.schema, channel.metadata, time_ns, payload)
-
     def write_user(
         self, topic: str, message: Mapping[str, Any], message_type: type[Any] | None = None
     ) -> None:
@@ -537,12 +528,9 @@ class Recorder:
             self._write("/evclock/state", schema, now, state)
             self._write("/evclock/joints", JOINT_STATES_SCHEMA, now, world.joint_states(now))
             self._write("/evclock/transforms", FRAME_TRANSFORMS_SCHEMA, now, world.transforms(now))
-            resend = self._live is not None and self._live.scene_wanted()
-            if not self._scene_sent:
+            if not self._scene_sent:  # once: the live view sends it to later subscribers
                 self._scene_sent = True
                 self._write("/evclock/scene", SCENE_UPDATE_SCHEMA, now, world.scene(now))
-            elif resend:  # for a viewer that subscribed late: never into the file
-                self._send_live("/evclock/scene", SCENE_UPDATE_SCHEMA, now, world.scene(now))
         if self._live is not None:
             self._live.tick(now)
 

@@ -262,31 +262,33 @@ class Viewer(Client):
         return [(t, m) for s, t, m in self.data if self.topics[s] == "/evclock/scene"]
 
 
-def _sees_the_robot(url: str, joined_after_ns: int = 0) -> int:
-    """Connect a viewer to ``url``; it is sent the scene, drawing every link of the model
-    with a visual, stamped at or after ``joined_after_ns``. Returns the last sim time the
-    viewer heard broadcast."""
+def _sees_the_robot(viewer: Viewer, joined_at_ns: int = 0) -> None:
+    """``viewer`` is sent the scene, drawing every link of the model with a visual, stamped
+    at or after ``joined_at_ns``."""
+    # Told of the world's channels as it connects, whenever that is.
+    viewer.until(lambda: "advertise" in viewer.ops)
+    first = {c["topic"] for c in viewer.ops["advertise"][0]["channels"]}
+    assert {"/evclock/scene", "/evclock/joints", "/evclock/transforms"} <= first, first
+    viewer.until(lambda: bool(viewer.scenes()))
+    refused = [op["message"] for op in viewer.ops.get("status", [])]
+    scene_id = viewer.channels()["/evclock/scene"]["id"]
+    assert f"Unknown channel ID: {scene_id}" not in refused, refused
+    stamp, scene = viewer.scenes()[0]
+    assert stamp >= joined_at_ns
+    entities = {e["id"]: e for e in scene["entities"]}
+    assert set(entities) == _drawn_links()
+    for frame, entity in entities.items():
+        assert entity["frame_id"] == frame
+        assert entity["frame_locked"] is True
+        assert entity["models"] or entity["cubes"] or entity["cylinders"], frame
+
+
+@contextlib.contextmanager
+def _viewer(url: str) -> Iterator[Viewer]:
     from websockets.sync.client import connect
 
     with connect(url, subprotocols=[SUBPROTOCOL], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
-        viewer = Viewer(ws)
-        # Told of the world's channels as it connects, whenever that is.
-        viewer.until(lambda: "advertise" in viewer.ops)
-        first = {c["topic"] for c in viewer.ops["advertise"][0]["channels"]}
-        assert {"/evclock/scene", "/evclock/joints", "/evclock/transforms"} <= first, first
-        viewer.until(lambda: bool(viewer.scenes()) and bool(viewer.times))
-        refused = [op["message"] for op in viewer.ops.get("status", [])]
-        scene_id = viewer.channels()["/evclock/scene"]["id"]
-        assert f"Unknown channel ID: {scene_id}" not in refused, refused
-        ((stamp, scene),) = viewer.scenes()[:1]
-        assert stamp >= joined_after_ns
-        entities = {e["id"]: e for e in scene["entities"]}
-        assert set(entities) == _drawn_links()
-        for frame, entity in entities.items():
-            assert entity["frame_id"] == frame
-            assert entity["frame_locked"] is True
-            assert entity["models"] or entity["cubes"] or entity["cylinders"], frame
-        return viewer.times[-1]
+        yield Viewer(ws)
 
 
 ENGINES = [pytest.param("pybullet", marks=pytest.mark.pybullet), "mujoco"]
@@ -299,12 +301,16 @@ LONG_RUN = ["--seed", "1", "--until", "60", "--param", "dwell=60", "--quiet"]  #
     "options", [[], ["--rtf", "2", "--record", "run.mcap"]], ids=["live", "live-record"]
 )
 def test_every_viewer_sees_the_robot(engine: str, options: list[str], tmp_path: Path) -> None:
-    """A viewer connecting as the run starts, and another connecting mid-run, are both sent
-    the scene: the model's links, drawn."""
+    """A viewer connecting as the run starts is sent the scene: the model's links, drawn;
+    so is one connecting later, while the run is paused (it takes no samples then)."""
     run = ["run", "kuka", "--engine", engine, *LONG_RUN, *options]
-    with _live_view(tmp_path, *run) as (_proc, url):
-        early = _sees_the_robot(url)
-        _sees_the_robot(url, joined_after_ns=early + 1)
+    with _live_view(tmp_path, *run) as (_proc, url), _viewer(url) as early:
+        _sees_the_robot(early)
+        early.until(lambda: any(t > 0 for t in early.times))  # the run is under way
+        services = {s["name"]: s["id"] for s in early.ops["advertiseServices"][0]["services"]}
+        assert early.call(services["/evclock/pause"], 1, {}) == {}
+        with _viewer(url) as late:
+            _sees_the_robot(late, joined_at_ns=early.times[-1])
 
 
 @needs_live
@@ -324,8 +330,11 @@ def test_a_viewer_of_a_split_run_sees_the_robot(engine: str, tmp_path: Path) -> 
             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
         )  # fmt: skip
         try:
-            early = _sees_the_robot(url)
-            _sees_the_robot(url, joined_after_ns=early + 1)
+            with _viewer(url) as early:
+                _sees_the_robot(early)
+                early.until(lambda: bool(early.times))
+                with _viewer(url) as late:
+                    _sees_the_robot(late, joined_at_ns=early.times[-1])
         finally:
             controllers.kill()
             controllers.communicate(timeout=WAIT_S)
