@@ -158,6 +158,7 @@ class Admission(ServerCore):
                     peer,
                     f"this clock server speaks TLS: join it with {self._address} (and "
                     "?tls_ca= or ?tls_fingerprint= to verify it), not plain tcp://",
+                    proto.REFUSE_TLS,
                 )
                 return False
             self._loop.remove_reader(sock)

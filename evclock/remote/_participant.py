@@ -14,6 +14,7 @@ pending sleeps raise ``ClockJumpedError``, asyncio timers keep their remaining d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hmac
 import itertools
 import json
@@ -303,6 +304,13 @@ class RemoteClockSource(TimeSource):
             code, reason = proto.parse_refuse(payload)
             if code == proto.REFUSE_BUSY:
                 return None
+            if code == proto.REFUSE_TLS and addr.scheme == "tcp":
+                tls = dataclasses.replace(addr, scheme="tls")
+                raise JoinRefusedError(
+                    f"the clock server at {addr} serves TLS only: join it with {tls}, verified "
+                    "with tls_ca or tls_fingerprint (evclock control: --tls-ca or "
+                    "--tls-fingerprint); nothing but the HELLO was sent to it"
+                )
             what = f"a REFUSE (saying {shown(reason)})"
         elif kind == proto.WELCOME:
             what = "a WELCOME"

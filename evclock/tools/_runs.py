@@ -60,7 +60,8 @@ class LoopReport:
     :ivar name: the loop's name.
     :ivar hz: its frequency, in hertz.
     :ivar stats: its :class:`~evclock.LoopStats` figures (ticks, misses, lateness...).
-    :ivar on_physics_steps: whether its deadlines fall on physics steps (None: unknown).
+    :ivar on_physics_steps: whether its deadlines fall on physics steps (None: no physics
+        step is known).
     """
 
     name: str
@@ -69,7 +70,9 @@ class LoopReport:
     on_physics_steps: bool | None = None
     """Whether every deadline of the loop falls on a physics step (its period is a whole
     number of steps); when not, a tick runs at the first step at or after its deadline, up
-    to one step late by quantisation alone. None where no physics step is known (wall time)."""
+    to one step late by quantisation alone. None where no physics step is known: a wall-time
+    run, and the controllers of a split run whose server does not serve its physics step
+    (evclock 0.2's did not); known on both sides of a split run otherwise."""
 
 
 @dataclasses.dataclass
@@ -285,16 +288,19 @@ def import_pybullet_quietly() -> None:
 
 def _loop_reports(clk: Clock, step_ns: Fraction | None = None) -> list[LoopReport]:
     """A report per rate loop of ``clk``; with the physics step ``step_ns``, whether each
-    loop's deadlines fall on physics steps (its exact period a whole number of steps)."""
+    loop's deadlines fall on physics steps."""
     return [
-        LoopReport(
-            rate.name,
-            float(rate.hz),
-            rate.stats.as_dict(),
-            None if step_ns is None else (_period_fraction(rate.hz) / step_ns).denominator == 1,
-        )
-        for rate in clk.rates
+        loop_report(rate.name, float(rate.hz), rate.stats.as_dict(), step_ns) for rate in clk.rates
     ]
+
+
+def loop_report(
+    name: str, hz: float, stats: dict[str, float | int], step_ns: Fraction | None
+) -> LoopReport:
+    """The report of one rate loop; with the physics step ``step_ns``, whether its deadlines
+    fall on physics steps (its exact period a whole number of steps)."""
+    on_steps = None if step_ns is None else (_period_fraction(hz) / step_ns).denominator == 1
+    return LoopReport(name, hz, stats, on_steps)
 
 
 def scenario_class(scenario: str | type[Any], params: dict[str, ParamValue]) -> type[Any]:
@@ -510,9 +516,9 @@ def _run_on_sim_time(
         raise
     install_step_hooks(scenario, source)
     try:
-        from evclock.tools._record import open_recorder  # to --record and/or --foxglove
+        from evclock.tools._record import open_recorder, world_of  # --record, --foxglove
 
-        recorder = open_recorder(record, cls, seed, params, limit)
+        recorder = open_recorder(record, cls, seed, params, limit, world=world_of(source))
     except BaseException:
         source.close()
         raise
@@ -612,7 +618,9 @@ def _run_on_wall_time(
         except Exception as exc:
             return _error_report(cls, seed, "wall", limit, output, exc)
         task_id = progress.add_task(cls.name, total=limit, rtf="1 (wall)") if progress else None
-        recorder = open_recorder(record, cls, seed, params or {}, limit, mode="wall")
+        recorder = open_recorder(
+            record, cls, seed, params or {}, limit, mode="wall", world=engine_world
+        )
         refresh_every = round(PHYSICS_HZ * _PROGRESS_PERIOD)
 
         before, after = step_hooks_of(scenario)
@@ -635,7 +643,7 @@ def _run_on_wall_time(
         async def main() -> RunReport:
             clk = clock()
             if recorder is not None:
-                recorder.attach(None, clk, scenario.state_vector, world=engine_world)
+                recorder.attach(None, clk, scenario.state_vector)
             start = clk.now().seconds
             physics = asyncio.create_task(world())
             outcome = _Outcome()
