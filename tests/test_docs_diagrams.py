@@ -73,7 +73,7 @@ MEASURE = """
 
 def labels(source: str) -> list[str]:
     """The text of each quoted node and edge label of a Mermaid flowchart, as shown."""
-    body = source.split("\n", 1)[1] if source.startswith("%%") else source  # not the init line
+    body = re.sub(r"\A---\n.*?^---\n", "", source, flags=re.M | re.S)  # not the front matter
     found = re.findall(r'"([^"]+)"', body)
     return [html.unescape(re.sub(r"<[^>]+>", " ", t).replace("#quot;", '"')) for t in found]
 
