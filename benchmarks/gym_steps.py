@@ -37,15 +37,18 @@ median steps per CPU second and the median of the per-round ratios to the minima
 
 **Vector** (``--vector``): ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="async")``
 with 1, 2 and 4 worker processes, random actions, ended episodes reset in their workers
-(Gymnasium's autoreset): total steps per wall second (the median of the rounds of each vector
-environment), and the ratio to 1 worker; for ``InvertedPendulum-v5`` and the evclock
-environments on MuJoCo. Workers scale only on free cores.
+(Gymnasium's autoreset): total steps per wall second (the median of the rounds, the worker
+counts interleaved round by round), and the median of the per-round ratios to 1 worker; for
+``InvertedPendulum-v5`` and the evclock environments on MuJoCo. Workers scale only on free
+cores: the first line printed gives the machine's CPUs and load average.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib.util
+import os
+import platform
 import statistics
 import time
 from typing import Any
@@ -283,35 +286,50 @@ def hand_written(steps: int, rounds: int) -> None:
 # --- async vector environments -------------------------------------------------------------
 
 
-def vector_rate(env_id: str, workers: int, steps: int, rounds: int) -> float:
-    """Total steps per wall second of an async vector ``env_id`` with ``workers`` processes
-    (the median of ``rounds`` rounds of ``steps`` steps), random actions; Gymnasium's
-    autoreset starts an ended episode over in its worker."""
+def vector_rates(env_id: str, workers: list[int], steps: int, rounds: int) -> list[list[float]]:
+    """Total steps per wall second of async vector ``env_id``s with each count of ``workers``
+    processes, per round (the vector environments step in turn in each round), random
+    actions; Gymnasium's autoreset starts an ended episode over in its worker."""
     kwargs = {} if env_id in GYMNASIUM else {"engine": "mujoco"}
-    vector = gymnasium.make_vec(env_id, num_envs=workers, vectorization_mode="async", **kwargs)
-    vector.action_space.seed(0)
-    vector.reset(seed=list(range(workers)))
-    rates = []
+    vectors = [
+        gymnasium.make_vec(env_id, num_envs=n, vectorization_mode="async", **kwargs)
+        for n in workers
+    ]
+    for n, vector in zip(workers, vectors, strict=True):
+        vector.action_space.seed(0)
+        vector.reset(seed=list(range(n)))
+    rates: list[list[float]] = [[] for _ in workers]
     for _ in range(rounds):
-        wall0 = time.perf_counter()
-        for _ in range(steps):
-            vector.step(vector.action_space.sample())
-        rates.append(workers * steps / (time.perf_counter() - wall0))
-    vector.close()
-    return statistics.median(rates)
+        for n, vector, rate in zip(workers, vectors, rates, strict=True):
+            wall0 = time.perf_counter()
+            for _ in range(steps):
+                vector.step(vector.action_space.sample())
+            rate.append(n * steps / (time.perf_counter() - wall0))
+    for vector in vectors:
+        vector.close()
+    return rates
 
 
 def vector(steps: int, rounds: int, workers: list[int]) -> None:
     print(
         f"async vector environments (make_vec, vectorization_mode='async'), MuJoCo: {steps} "
         f"steps x {rounds} rounds, random actions, autoreset; total steps per wall second "
-        "(median of the rounds) and the ratio to 1 worker"
+        f"(median of the rounds) and the median of the per-round ratios to {workers[0]} worker(s)"
     )
     print(f"{'environment':<22}" + "".join(f"{f'{n} worker(s)':>18}" for n in workers))
     for env_id in [BASELINE, *EVCLOCK]:
-        rates = [vector_rate(env_id, n, steps, rounds) for n in workers]
-        cells = "".join(f"{f'{rate:,.0f} ({rate / rates[0]:.2f}x)':>18}" for rate in rates)
+        rates = vector_rates(env_id, workers, steps, rounds)
+        cells = "".join(
+            f"{f'{statistics.median(rate):,.0f} ({median_ratio(rate, rates[0]):.2f}x)':>18}"
+            for rate in rates
+        )
         print(f"{env_id:<22}{cells}")
+
+
+def machine() -> str:
+    """The interpreter, the CPUs and the load average, which the figures depend on."""
+    load = os.getloadavg()[0]
+    return f"python {platform.python_version()}, {os.cpu_count()} CPUs, load average {load:.1f}"
 
 
 def main() -> None:
@@ -322,6 +340,7 @@ def main() -> None:
     parser.add_argument("--vector-steps", type=int, default=200, help="vector steps per round")
     parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     args = parser.parse_args()
+    print(machine())
     if args.vector:
         vector(args.vector_steps, args.rounds, args.workers)
         return
