@@ -1,4 +1,5 @@
-"""``evclock run SCENARIO --ros2``: the robot on /joint_states and /tf over DDS, on sim time.
+"""``evclock run SCENARIO --ros2``: the robot on /joint_states, /tf and /robot_description over
+DDS, on sim time.
 
 A plain Cyclone DDS participant of the test reads the topics with ROS's type names, written
 here from the message definitions; every wait is bounded. Loopback only, a test-unique domain
@@ -138,14 +139,15 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     if engine == "mujoco":
         (static,) = statics
         assert [(f.header.frame_id, f.child_frame_id) for f in static.transforms] == [
-            ("world", "lbr_iiwa/lbr_iiwa_link_0")
+            ("world", "lbr_iiwa_link_0")
         ]
         assert stamp_ns(static.transforms[0].header) == 0
     else:
         assert statics == []
     static_frames = {f.child_frame_id for m in statics for f in m.transforms}
     assert not moving & static_frames
-    assert moving | static_frames == {f"lbr_iiwa/lbr_iiwa_link_{k}" for k in range(8)}
+    # Named after the URDF's links, as robot_state_publisher names them (no prefix asked).
+    assert moving | static_frames == {f"lbr_iiwa_link_{k}" for k in range(8)}
     # The payload layout is rosbags' (the message definitions of ROS 2 Jazzy).
     store = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
     last = states[-1]
