@@ -70,6 +70,7 @@ TransformStamped_ = make_idl_struct(
 TFMessage_ = make_idl_struct(
     "TFMessage_", "tf2_msgs::msg::dds_::TFMessage_", {"transforms": t.sequence[TransformStamped_]}
 )
+String_ = make_idl_struct("String_", "std_msgs::msg::dds_::String_", {"data": str})
 RELIABLE = Qos(Policy.Reliability.Reliable(max_blocking_time=100_000_000), Policy.History.KeepAll)
 #: tf2_ros' StaticListenerQoS: a late joiner still gets the static frames.
 STATIC = Qos(
@@ -155,6 +156,35 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     assert list(rebuilt.name) == list(last.name)
     assert list(rebuilt.position) == list(last.position)
     assert bytes(store.serialize_cdr(rebuilt, "sensor_msgs/msg/JointState")) == last.serialize()
+
+
+def test_frame_prefix_and_robot_description(plain: DomainParticipant) -> None:
+    # Two robots in one ROS graph: --ros2-frame-prefix puts each one's frames apart, as
+    # robot_state_publisher's frame_prefix does (world, the fixed frame, is shared); the URDF
+    # reaches a subscriber on /robot_description as robot_state_publisher's subscribers take it.
+    pytest.importorskip("mujoco")
+    from evclock.tools._ros2_state import robot_description
+    from evclock_sims._mujoco import model_path
+
+    tf = DataReader(plain, Topic(plain, "rt/tf", TFMessage_), qos=RELIABLE)
+    tf_static = DataReader(plain, Topic(plain, "rt/tf_static", TFMessage_), qos=STATIC)
+    urdf = DataReader(plain, Topic(plain, "rt/robot_description", String_), qos=STATIC)
+    frames: list[Any] = []
+    descriptions: list[Any] = []
+
+    def drain() -> None:
+        frames.extend(m for m in tf.take(256) + tf_static.take(16) if isinstance(m, TFMessage_))
+        descriptions.extend(m for m in urdf.take(4) if isinstance(m, String_))
+
+    options = ["--ros2", "--ros2-frame-prefix", "robot1/", "--until", "0.05"]
+    status, _out, err = run_draining(
+        [*EVCLOCK_RUN, "kuka", "--engine", "mujoco", *options], drain, ROOT
+    )
+    assert status == 3, err
+    names = {(f.header.frame_id, f.child_frame_id) for m in frames for f in m.transforms}
+    assert names == {("world", f"robot1/lbr_iiwa_link_{k}") for k in range(8)}
+    (description,) = descriptions
+    assert description.data == robot_description(model_path("kuka_iiwa/model.urdf"))
 
 
 def test_a_fixed_joint_is_a_static_frame_in_its_parents_frame() -> None:
