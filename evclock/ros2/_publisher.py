@@ -290,9 +290,10 @@ class Ros2ClockPublisher:
         Sim time stays where it is (an explicit hold of the running simulation loop: it
         neither advances nor reports a deadlock meanwhile), and the held time is published
         every 20 ms of wall time, and for 0.25 s more once they matched (DDS tells a writer
-        when it matched a reader, not when the reader matched the writer), so the first ``/clock`` sample a new subscription takes is that time (a
-        DDS reader drops samples from a writer it has not finished discovering). Returns how
-        many subscriptions matched.
+        when it matched a reader, not when the reader matched the writer), so the first
+        ``/clock`` sample a new subscription takes is that time (a DDS reader drops samples
+        from a writer it has not finished discovering). Returns how many subscriptions
+        matched.
 
         :param count: how many subscriptions to wait for (an int >= 1).
         :param timeout: wall seconds to wait at most (> 0).

@@ -224,7 +224,12 @@ def test_rclpy_names_evclock_nodes_and_their_endpoints(domain: int) -> None:
         topics = ["/clock", "/tf_static"]
 
         def named(graph: dict[str, Any]) -> bool:
-            return {"/evclock_clock", "/evclock_robot_state"} <= set(graph["nodes"])
+            endpoints = [p for topic in topics for p in graph["topics"][topic]["publishers"]]
+            return (
+                {"/evclock_clock", "/evclock_robot_state"} <= set(graph["nodes"])
+                and all(p["node_name"].startswith("evclock_") for p in endpoints)
+                and len(endpoints) == len(topics)
+            )
 
         graph = node.until("evclock's node names", named, "graph", timeout=15.0, topics=topics)
     # As `ros2 node list` and `ros2 topic info -v /clock` show them.
