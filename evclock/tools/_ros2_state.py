@@ -145,10 +145,6 @@ class RobotStatePublisher:
         moving = [f for f in frames if f["child_frame_id"] not in static]
         return self._tf_message(moving, time_ns)
 
-    def tf_static(self, time_ns: int) -> Any:
-        """The ``tf2_msgs/TFMessage`` of the frames that never move, stamped ``time_ns``."""
-        return self._tf_message(self._reader.fixed_transforms(time_ns)["transforms"], time_ns)
-
     def _tf_message(self, frames: list[dict[str, Any]], time_ns: int) -> Any:
         cls = self._cls
         transforms = []
