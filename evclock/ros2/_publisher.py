@@ -282,7 +282,7 @@ class Ros2ClockPublisher:
                 f"{type(source).__name__}; on another source publish at a sim-time rate with "
                 "run(hz)"
             )
-        return publish_every(source, _check_decimation(decimation), self.publish)
+        return publish_every(source, check_decimation(decimation), self.publish)
 
     async def wait_for_subscribers(self, count: int, *, timeout: float = 60.0) -> int:
         """Hold sim time until ``count`` subscriptions matched this publisher (DDS).
@@ -399,7 +399,7 @@ def publish_every(
     return source.add_step_hook(publish_step, when="after")
 
 
-def _check_decimation(decimation: object) -> int:
+def check_decimation(decimation: object) -> int:
     if isinstance(decimation, bool) or not isinstance(decimation, int):
         raise InvalidTypeError(f"decimation must be an int, got {type(decimation).__name__}")
     if decimation < 1:

@@ -27,11 +27,12 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
-from evclock._errors import InvalidArgumentError
+from evclock._errors import InvalidArgumentError, InvalidTypeError
 from evclock.ros2._dds import DdsNode, DdsQos
 from evclock.ros2._publisher import publish_every
 from evclock.ros2._types import message_class, serialize
-from evclock.ros2._wire import check_frame_prefix, wire_format
+from evclock.ros2._wire import DEFAULT_WIRE_FORMAT, check_frame_prefix, resolve_domain_id
+from evclock.ros2._wire import wire_format as lookup_wire_format
 
 if TYPE_CHECKING:
     from evclock.ros2._cli import Ros2ClockOptions
@@ -83,7 +84,7 @@ class RobotStatePublisher:
 
     def __init__(self, reader: Any, options: Ros2ClockOptions, urdf: Path | None = None) -> None:
         self._reader = reader
-        self._wire = wire_format(options.wire_format)
+        self._wire = lookup_wire_format(options.wire_format)
         self._frames = _ros_frames(reader.link_names, check_frame_prefix(options.frame_prefix))
         description = None if urdf is None else robot_description(urdf)
         self._node = DdsNode(options.domain_id, "evclock_robot_state", self._wire)
@@ -210,6 +211,56 @@ def publishing_robot_state(
     finally:
         hook.remove()
         publisher.close()
+
+
+@contextlib.contextmanager
+def ros2_robot_state(
+    source: Any,
+    *,
+    urdf: str | Path | None = None,
+    frame_prefix: str = "",
+    domain_id: int | None = None,
+    decimation: int = 1,
+    wire_format: str = DEFAULT_WIRE_FORMAT,
+) -> Iterator[RobotStatePublisher]:
+    """Publish a simulation's robot on ROS 2 (DDS) while the block runs, as ``evclock run
+    --ros2`` does: ``/joint_states``, ``/tf`` and ``/tf_static`` now and every ``decimation``
+    physics steps, stamped with sim time, frames named ``frame_prefix + link`` after the
+    URDF's links (as robot_state_publisher's ``frame_prefix``; ``world`` is never prefixed),
+    and the ``urdf`` file's robot on ``/robot_description`` (reliable, transient local).
+
+    :param source: the stepping source of a PyBullet or MuJoCo world.
+    :param urdf: the robot's URDF file (None: no ``/robot_description``).
+    :param frame_prefix: prepended to every link frame, e.g. ``"robot1/"`` for several robots.
+    :param domain_id: the ROS domain (default ``ROS_DOMAIN_ID``, else 0).
+    :param decimation: publish every this many physics steps (>= 1).
+    :param wire_format: the distribution spoken (``"jazzy"``, ``"kilted"``, ``"humble"``...).
+    :returns: the publisher (its ``robot_description`` and ``published`` count).
+    :raises InvalidArgumentError: an illegal frame prefix, a URDF that cannot be read, a
+        source that is not a PyBullet or MuJoCo world, a decimation below 1.
+
+    Example::
+
+        with ros2_robot_state(source, urdf="arm.urdf", frame_prefix="robot1/"):
+            evclock.run(main(), source=source)
+    """
+    from evclock.ros2._cli import Ros2ClockOptions
+    from evclock.ros2._publisher import check_decimation
+
+    if urdf is not None and not isinstance(urdf, str | Path):
+        raise InvalidTypeError(f"urdf must be a path (str or Path), got {type(urdf).__name__}")
+    options = Ros2ClockOptions(
+        domain_id=resolve_domain_id(domain_id),
+        decimation=check_decimation(decimation),
+        wire_format=lookup_wire_format(wire_format).name,
+        connect=None,
+        listen=None,
+        robot_state=True,
+        frame_prefix=check_frame_prefix(frame_prefix),
+    )
+    with publishing_robot_state(source, options, None if urdf is None else Path(urdf)) as published:
+        assert published is not None
+        yield published
 
 
 def _ros_frames(link_names: dict[str, str], prefix: str) -> dict[str, str]:

@@ -179,3 +179,41 @@ def test_wait_for_subscribers_refuses_bad_input_and_foreign_loops(loopback_dds: 
                 evclock.run(wait(count, timeout))
         with pytest.raises(NotRunningError, match="await it on a simulation's loop"):
             asyncio.run(wait(1, 1.0))
+
+
+def test_ros2_robot_state_in_python_names_frames_behind_a_prefix(loopback_dds: int) -> None:
+    # The Python face of `evclock run --ros2 --ros2-frame-prefix`: a MuJoCo world built from
+    # the KUKA's URDF, its frames behind "robot2/" and its URDF on /robot_description.
+    pytest.importorskip("mujoco")
+    from evclock.sources import MuJoCoTimeSource
+    from evclock.tools import ros2_robot_state
+    from evclock_sims._mujoco import model_path, urdf_to_mujoco
+
+    urdf = model_path("kuka_iiwa/model.urdf")
+    model = urdf_to_mujoco(urdf)
+    import mujoco
+
+    source = MuJoCoTimeSource(model, mujoco.MjData(model))
+    try:
+        with ros2_robot_state(source, urdf=str(urdf), frame_prefix="robot2/") as publisher:
+            assert publisher.robot_description == robot_description(urdf)
+            assert publisher.published == 1  # the start, at once
+            frames = {t.child_frame_id for t in publisher.tf(0).transforms}
+        assert frames == {f"robot2/lbr_iiwa_link_{k}" for k in range(1, 8)}  # link_0 is static
+        with (
+            pytest.raises(InvalidArgumentError, match="invalid frame prefix 'robot 2'"),
+            ros2_robot_state(source, frame_prefix="robot 2"),
+        ):
+            pass
+        with (
+            pytest.raises(InvalidTypeError, match="urdf must be a path"),
+            ros2_robot_state(source, urdf=3),  # type: ignore[arg-type]
+        ):
+            pass
+        with (
+            pytest.raises(InvalidArgumentError, match="decimation must be >= 1"),
+            ros2_robot_state(source, decimation=0),
+        ):
+            pass
+    finally:
+        source.close()
