@@ -174,6 +174,8 @@ class MuJoCoWorld:
         simulation process, while :attr:`model` stays this process's own."""
         self.mj: Any = mujoco()
         """The ``mujoco`` module."""
+        self.urdf: Path | None = None
+        """The URDF file the world was built from, once loaded."""
         self._source: Any = None
 
     def load_urdf(self, relative: str, **options: Any) -> None:
@@ -186,7 +188,8 @@ class MuJoCoWorld:
         """
         if self.model is not None:
             raise RuntimeError("this MuJoCoWorld already holds a model: one robot per world")
-        self.model = urdf_to_mujoco(model_path(relative), **options)
+        self.urdf = model_path(relative)
+        self.model = urdf_to_mujoco(self.urdf, **options)
         self.data = self.mj.MjData(self.model)
 
     def joint_index(self, name: str) -> tuple[int, int]:

@@ -57,7 +57,7 @@ class PyBulletCart:
         p = pybullet()
         self._p = p
         self.scenario = scenario
-        self.robot = scenario.load_urdf("cartpole.urdf", useFixedBase=True)
+        self.robot = scenario.load_urdf("cartpole.urdf", robot=True, useFixedBase=True)
         p.setJointMotorControlArray(
             self.robot,
             [SLIDER, POLE],

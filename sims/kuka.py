@@ -70,7 +70,7 @@ class PyBulletArm:
         self._p = p
         self.scenario = scenario
         client = scenario.client
-        self.robot = scenario.load_urdf("kuka_iiwa/model.urdf", useFixedBase=True)
+        self.robot = scenario.load_urdf("kuka_iiwa/model.urdf", robot=True, useFixedBase=True)
         self.joints = list(range(p.getNumJoints(self.robot, physicsClientId=client)))
         infos = [p.getJointInfo(self.robot, j, physicsClientId=client) for j in self.joints]
         self.lower = [info[8] for info in infos]

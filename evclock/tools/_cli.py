@@ -324,6 +324,9 @@ def run_command(
     ros2_listen: ros2_cli.Ros2Listen = None,
     rmw: ros2_cli.Rmw = None,
     ros2: ros2_cli.Ros2Flag = False,
+    ros2_frame_prefix: ros2_cli.Ros2FramePrefix = "",
+    ros2_wait_for_subscribers: ros2_cli.Ros2WaitForSubscribers = None,
+    ros2_wait_timeout: ros2_cli.Ros2WaitTimeout = ros2_cli.DEFAULT_WAIT_TIMEOUT,
 ) -> None:
     """Run a scenario with its controllers on evclock time.
 
@@ -348,6 +351,9 @@ def run_command(
             ros2_listen,
             rmw,
             ros2,
+            ros2_frame_prefix,
+            ros2_wait_for_subscribers,
+            ros2_wait_timeout,
         )
         if ros2_options is not None:
             if serve is not None:

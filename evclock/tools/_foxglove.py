@@ -300,6 +300,7 @@ class _Link:
     body: int
     index: int  # -1: the base
     frame: str
+    name: str  # the URDF's link name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -355,10 +356,11 @@ class World:
             base, robot = (_text(x) for x in p.getBodyInfo(body, physicsClientId=cid))
             name = unique_name(robot or base or f"body{body}", taken)
             bodies[name] = body
-            self.links.append(_Link(body, -1, f"{name}/{base or 'base'}"))
+            self.links.append(_Link(body, -1, f"{name}/{base or 'base'}", base or "base"))
             for j in range(p.getNumJoints(body, physicsClientId=cid)):
                 info = p.getJointInfo(body, j, physicsClientId=cid)
-                self.links.append(_Link(body, j, f"{name}/{_text(info[12])}"))
+                link = _text(info[12])
+                self.links.append(_Link(body, j, f"{name}/{link}", link))
                 if info[2] != p.JOINT_FIXED:
                     joints.append(_Joint(body, j, _text(info[1])))
         self.bodies = bodies
@@ -385,6 +387,11 @@ class World:
     def joint_names(self) -> list[str]:
         """Every moving (non-fixed) joint's name, in body then joint order."""
         return [joint.name for joint in self.joints]
+
+    @property
+    def link_names(self) -> dict[str, str]:
+        """Each link frame (``<body>/<link>``) -> the link's name in its URDF."""
+        return {link.frame: link.name for link in self.links}
 
     def state(self) -> dict[str, Any]:
         """The full physical state by name: per body its base pose and velocities and each

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from rich.progress import Progress
 
     from evclock.ros2._cli import Ros2ClockOptions
+    from evclock.ros2._publisher import Ros2ClockPublisher
     from evclock.tools._record import Recorder
 
 PHYSICS_HZ = 240
@@ -536,9 +537,12 @@ def _run_on_sim_time(
             progress.refresh()
             await asyncio.sleep(_PROGRESS_PERIOD)
 
-    async def main() -> RunReport:
+    async def main(clock_publisher: Ros2ClockPublisher | None) -> RunReport:
         loop = asyncio.get_running_loop()
         assert isinstance(loop, SimEventLoop)
+        wait = None if ros2_clock is None else ros2_clock.wait_for_subscribers
+        if clock_publisher is not None and ros2_clock is not None and wait is not None:
+            await clock_publisher.wait_for_subscribers(wait, timeout=ros2_clock.wait_timeout)
         clk = clock()
         if recorder is not None:
             recorder.attach(source, clk, scenario.state_vector)
@@ -582,10 +586,10 @@ def _run_on_sim_time(
     report: RunReport | None = None
     try:
         with (
-            publishing(source, ros2_clock),
-            publishing_robot_state(source, ros2_clock),
+            publishing(source, ros2_clock) as clock_publisher,
+            publishing_robot_state(source, ros2_clock, getattr(scenario, "robot_urdf", None)),
         ):
-            report = evclock_run(main(), source=source, rtf=rtf)
+            report = evclock_run(main(clock_publisher), source=source, rtf=rtf)
     finally:
         if recorder is not None:
             recorder.close(None if report is None else _outcome(report))
