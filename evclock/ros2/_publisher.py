@@ -318,8 +318,7 @@ class Ros2ClockPublisher:
         held = sim_clock().now()
         deadline = time.monotonic() + timeout
         settled: float | None = None  # when the subscriptions' side has had its time
-        loop.add_hold()
-        try:
+        with loop.hold_time():
             while settled is None or time.monotonic() < settled:
                 matched = self._writer.matched()
                 if matched < count:
@@ -333,10 +332,8 @@ class Ros2ClockPublisher:
                 elif settled is None:
                     settled = time.monotonic() + WAIT_SETTLE_S
                 self.publish(held)
-                loop.restart_stall_bound()  # this wait is bounded by its own timeout
+                loop._restart_stall_bound()  # this wait is bounded by its own timeout
                 await loop.run_in_executor(None, time.sleep, WAIT_REPUBLISH_S)
-        finally:
-            loop.release_hold()
         return matched
 
     async def run(self, hz: float) -> None:
