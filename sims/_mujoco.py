@@ -175,6 +175,16 @@ class MuJoCoWorld:
         self.mj: Any = mujoco()
         """The ``mujoco`` module."""
         self._source: Any = None
+        self._loaded: tuple[str, dict[str, Any]] | None = None  # load_urdf's arguments
+        self._reload = False
+
+    def clear(self) -> None:
+        """Empty the world for another scenario of the same robot, keeping the compiled model:
+        the next :meth:`load_urdf` with the same arguments resets the data (``mj_resetData``,
+        the state of a new ``MjData``) instead of compiling the URDF again. How a scenario is
+        built again in place (``evclock.gym.ScenarioEnv``'s reset); the time source, which
+        owns the clock, stays this world's."""
+        self._reload = self.model is not None
 
     def load_urdf(self, relative: str, **options: Any) -> None:
         """Build the world from a ``pybullet_data`` URDF (see :func:`model_path`) through
@@ -182,12 +192,19 @@ class MuJoCoWorld:
 
         :param relative: the URDF's path inside ``pybullet_data``.
         :param options: keyword arguments of :func:`urdf_to_mujoco`.
-        :raises RuntimeError: the world already holds a model.
+        :raises RuntimeError: the world already holds a model (and was not :meth:`clear`-ed
+            for the same one).
         """
+        loaded = (relative, options)
         if self.model is not None:
-            raise RuntimeError("this MuJoCoWorld already holds a model: one robot per world")
+            if not (self._reload and loaded == self._loaded):
+                raise RuntimeError("this MuJoCoWorld already holds a model: one robot per world")
+            self._reload = False
+            self.mj.mj_resetData(self.model, self.data)
+            return
         self.model = urdf_to_mujoco(model_path(relative), **options)
         self.data = self.mj.MjData(self.model)
+        self._loaded = loaded
 
     def joint_index(self, name: str) -> tuple[int, int]:
         """``(qpos address, dof address)`` of the joint named ``name``."""

@@ -178,10 +178,30 @@ def _expm(matrix: np.ndarray) -> np.ndarray:
     return result
 
 
+_GAINS: dict[tuple[bytes, ...], np.ndarray] = {}
+"""The gains :func:`discrete_lqr` solved, by the exact bytes of its inputs."""
+
+
 def discrete_lqr(
     a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, dt: float
 ) -> np.ndarray:
-    """Gain ``K`` (``u = -K x``) of the discrete LQR for ``dx/dt = a x + b u`` held over ``dt``."""
+    """Gain ``K`` (``u = -K x``) of the discrete LQR for ``dx/dt = a x + b u`` held over ``dt``.
+
+    Solved once per distinct input (bit for bit) and process: the cart-pole asks again at
+    every build, with the same model (a reset in place builds it again), and the Riccati
+    iteration takes tens of milliseconds. Returns a new array each time.
+    """
+    a, b, q, r = (np.ascontiguousarray(x, dtype=np.float64) for x in (a, b, q, r))
+    key = (*(x.tobytes() + str(x.shape).encode() for x in (a, b, q, r)), np.float64(dt).tobytes())
+    gain = _GAINS.get(key)
+    if gain is None:
+        gain = _GAINS[key] = _solve_discrete_lqr(a, b, q, r, dt)
+    return gain.copy()
+
+
+def _solve_discrete_lqr(
+    a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, dt: float
+) -> np.ndarray:
     n, m = b.shape
     augmented = np.zeros((n + m, n + m))
     augmented[:n, :n] = a

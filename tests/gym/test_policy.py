@@ -53,7 +53,17 @@ def lqr_policy() -> LinearPolicy:
 
 
 def env_rollout(name: str, engine: str, policy: Any, seed: int, steps: int) -> dict[str, Any]:
-    env = ScenarioEnv(name, engine=engine)
+    """``steps`` steps of ``policy`` from a reset with ``seed``, after other episodes (one cut
+    short by a reset, one to its end): a reset in place is a new run."""
+    env = ScenarioEnv(name, engine=engine, max_episode_seconds=2.5)
+    env.reset(seed=seed + 1)
+    for _ in range(3):
+        env.step(env.action_space.sample())
+    env.reset(seed=seed + 2)
+    done = False
+    while not done:
+        *_, terminated, truncated, _ = env.step(np.ones(env.action_space.shape))
+        done = terminated or truncated
     observation, _ = env.reset(seed=seed)
     for _ in range(steps):
         observation, _, terminated, truncated, info = env.step(policy(observation))
