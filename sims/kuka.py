@@ -165,7 +165,7 @@ class MuJoCoArm:
         data.ctrl[:] = REST_POSE
         world.forward()
         self.flange = world.body_index(FLANGE_BODY)
-        self._scratch = mj.MjData(model)
+        self._scratch = world.scratch()
         self._down = np.zeros(4)
         mj.mju_euler2Quat(self._down, np.array(FLANGE_DOWN), "xyz")
         self._jacp = np.zeros((3, model.nv))
