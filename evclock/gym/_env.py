@@ -35,7 +35,12 @@ from evclock._errors import EnvStateError, InvalidArgumentError, InvalidTypeErro
 from evclock._extras import import_extra
 from evclock.gym._protocol import check_action, check_protocol, check_rate
 from evclock.hosts._loop import SimEventLoop
-from evclock.tools._runs import install_step_hooks, root_exception, scenario_class
+from evclock.tools._runs import (
+    import_pybullet_quietly,
+    install_step_hooks,
+    root_exception,
+    scenario_class,
+)
 from evclock.tools._scenarios import ParamValue, open_world, require_engine
 
 import_extra("gymnasium", "gym", needed_by="evclock.gym")  # the extra's error, if missing
@@ -248,6 +253,8 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         self._params = dict(params or {})
         self._cls = scenario_class(scenario, self._params)
         require_engine(self._cls, engine)  # the engine is installed, or the extra is named
+        if engine == "pybullet":
+            import_pybullet_quietly()  # as the command line: no banner on the user's stderr
         self.controller = check_protocol(self._cls, controller)
         """The label of the controller the agent replaces."""
         self.engine = engine
