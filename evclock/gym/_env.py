@@ -87,6 +87,7 @@ class _Episodes:
     def _open(self, seed: int) -> None:
         """Build the world and the loop anew, the scenario in it with ``seed``."""
         self.source, self.scenario = open_world(self.cls, seed, engine=self.engine)
+        self.scenario.agent_controller = self.label  # the spaces and the rate are its
         try:
             self.hz = check_rate(self.scenario)
             self.loop = SimEventLoop(self.source, watch_threads=False)
@@ -110,6 +111,7 @@ class _Episodes:
                 world = self.source.client
             loop.clock._forget_loops()
             self.scenario = self.cls(world, seed)
+            self.scenario.agent_controller = self.label
         loop = self.loop
         assert loop is not None
         scenario = self.scenario
@@ -213,8 +215,10 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
 
     :param scenario: a registered name (``"cartpole"``), ``module:Class``, a file, or a
         scenario class implementing the agent protocol.
-    :param controller: the controller the agent replaces (default: the scenario's
-        ``agent_controller``).
+    :param controller: the controller the agent replaces: one of the scenario's
+        ``agent_controllers`` (the KUKA's ``"joint_control"``, 100 Hz joint targets, or
+        ``"planner"``, 10 Hz goals for the joint controller), each with its own rate,
+        observation and action spaces (default: the scenario's ``agent_controller``).
     :param engine: ``"mujoco"`` (default: Gymnasium's reference engine, on every Python) or
         ``"pybullet"``.
     :param seed: the seed of the first episode when ``reset()`` is given none.
@@ -225,7 +229,7 @@ class ScenarioEnv(gymnasium.Env[Any, Any]):
         ``record`` (``runs/cartpole.mcap`` -> ``runs/cartpole-0.mcap``, ...).
     :param render_mode: only None (watch episodes in Foxglove through ``record``).
     :raises AgentProtocolError: the scenario lacks the agent protocol, or ``controller`` is
-        not the one it lets an agent replace.
+        not one it lets an agent replace (the message names those).
     :raises InvalidArgumentError: an unknown engine or parameter, a bad time limit.
     :raises MissingExtraError: the engine is not installed (the message names its extra).
     """

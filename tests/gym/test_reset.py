@@ -61,19 +61,26 @@ def balancing(env: ScenarioEnv, observation: Any, _rng: Any) -> Any:
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-@pytest.mark.parametrize("name", ["cartpole", "kuka"])
-def test_an_episode_after_others_is_a_new_environments(name: str, engine: str) -> None:
-    fresh = ScenarioEnv(name, engine=engine, max_episode_seconds=LIMIT)
-    expected = episode(fresh, 3, random_actions)
-    expected_balanced = episode(ScenarioEnv(name, engine=engine, max_episode_seconds=LIMIT),
-                                4, balancing)  # fmt: skip
-    fresh.close()
+@pytest.mark.parametrize(
+    ("name", "controller"), [("cartpole", None), ("kuka", None), ("kuka", "planner")]
+)
+def test_an_episode_after_others_is_a_new_environments(
+    name: str, controller: str | None, engine: str
+) -> None:
+    def new_env() -> ScenarioEnv:
+        return ScenarioEnv(name, controller, engine=engine, max_episode_seconds=LIMIT)
 
-    env = ScenarioEnv(name, engine=engine, max_episode_seconds=LIMIT)
+    fresh, other = new_env(), new_env()
+    expected = episode(fresh, 3, random_actions)
+    expected_balanced = episode(other, 4, balancing)
+    fresh.close()
+    other.close()
+
+    env = new_env()
     outcomes = [
         episode(env, 5, full_push)["outcome"],  # the cart-pole falls; the KUKA runs out
         episode(env, 6, balancing)["outcome"],  # truncated
-        episode(env, 6, random_actions, steps=7)["outcome"],  # reset in the middle
+        episode(env, 6, random_actions, steps=3)["outcome"],  # reset in the middle
         episode(env, None, random_actions, steps=0)["outcome"],  # reset right after a reset
     ]
     expected_outcomes = {"cartpole": "terminated", "kuka": "truncated"}[name]
