@@ -13,7 +13,8 @@ from typing import Any
 import numpy as np
 import pytest
 
-from evclock.gym import ScenarioEnv
+import evclock
+from evclock.gym import EnvStateError, ScenarioEnv
 
 ENGINES = ("mujoco", pytest.param("pybullet", marks=pytest.mark.pybullet))
 LIMIT = 0.6  # sim seconds per episode: the LQR's cart-pole and the KUKA are truncated
@@ -108,3 +109,39 @@ def test_a_reset_brings_sim_time_back_to_zero_with_only_the_new_episodes_loops(
     assert env.scenario.seed == 2
     assert old_scenario.finished_at is None  # its run was cancelled, not finished
     env.close()
+
+
+def test_after_the_physics_raised_a_reset_builds_world_and_loop_anew() -> None:
+    from evclock_sims import CartPole
+
+    class Faulty(CartPole):
+        """A NaN force reaches MuJoCo at the 30th physics step of its second build's episode."""
+
+        name = "faulty"
+        engines = ("mujoco",)
+        builds = 0
+
+        def __init__(self, world: Any, seed: int = 0) -> None:
+            super().__init__(world, seed)
+            type(self).builds += 1
+            self.steps = 0
+
+        def before_step(self) -> None:
+            self.steps += 1
+            if type(self).builds == 2 and self.steps == 30:
+                self.cart.world.data.ctrl[0] = float("nan")
+
+    env = ScenarioEnv(Faulty)  # build 1: the spaces
+    env.reset(seed=3)  # build 2
+    for _ in range(6):  # 29 physics steps
+        env.step(np.zeros(1))
+    with pytest.raises(evclock.PhysicsError, match="mjWARN_BADCTRL"):
+        env.step(np.zeros(1))
+    assert env._episodes.loop is None  # closed: its state after the error is unknown
+    with pytest.raises(EnvStateError, match="the simulation raised: call reset"):
+        env.step(np.zeros(1))
+    again = episode(env, 3, random_actions)
+    env.close()
+    fresh = ScenarioEnv(Faulty)
+    assert episode(fresh, 3, random_actions) == again
+    fresh.close()
