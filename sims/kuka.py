@@ -284,9 +284,9 @@ class KukaReach(Scenario):
         ]
         self.reached_at: list[float] = []
         self.goal = np.array(REST_POSE)
-        self._set_goal: tuple[int, np.ndarray] | None = None  # (sim ns, goal before): agent's
-        self._clock: ClockLike | None = None
         """Joint positions the planner asks for (latest IK solution)."""
+        self._set_goal: tuple[int, np.ndarray] | None = None  # an agent's: (sim ns, goal before)
+        self._clock: ClockLike | None = None
         self.final_error = float("inf")
         self.index = 0
         """The index of the target the planner heads for."""
@@ -304,18 +304,12 @@ class KukaReach(Scenario):
         planner = self.replaced.get("planner")
         if planner is None:
             return super()._controllers(clock)
-        others, self.replaced = (
-            self.replaced,
-            {
-                label: controller
-                for label, controller in self.replaced.items()
-                if label != "planner"
-            },
-        )
+        replaced = self.replaced
+        self.replaced = {label: other for label, other in replaced.items() if label != "planner"}
         try:
             services = super()._controllers(clock)
         finally:
-            self.replaced = others
+            self.replaced = replaced
         services["planner"] = planner(clock)
         return services
 
