@@ -8,6 +8,7 @@ controller.)
 
 from __future__ import annotations
 
+import asyncio
 from typing import Any
 
 import numpy as np
@@ -102,7 +103,11 @@ def test_a_reset_brings_sim_time_back_to_zero_with_only_the_new_episodes_loops(
     for _ in range(10):
         env.step(np.zeros(1))
     old_scenario = env.scenario
+    old_tasks = asyncio.all_tasks(env._episodes.loop)
+    assert len(old_tasks) == 4  # the run, monitor, balance (the agent) and the judge
     _, info = env.reset(seed=2)
+    assert all(task.cancelled() for task in old_tasks)  # cancelled, and run to their end
+    assert not old_tasks & asyncio.all_tasks(env._episodes.loop)
     assert info["sim_time"] == 0.0
     assert info["ticks"] == {"monitor": 1, "judge": 1, "balance": 1}
     assert env.scenario is not old_scenario
