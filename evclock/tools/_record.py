@@ -324,6 +324,7 @@ class Recorder:
         self._world = world
         self._scene_sent = False
         self._log_handler: logging.Handler | None = None
+        self._hooks: list[Any] = []  # the step hook and jump handler attach() registered
         self._seen: dict[str, tuple[int, int]] = {}  # loop name -> (ticks, missed) recorded
         from evclock.kernel._rate import DeadlineGrid
 
@@ -429,8 +430,8 @@ class Recorder:
         self._samples.start(clk.now_ns())
         self._last_sample = (clk.now_ns(), time.perf_counter())
         if source is not None:
-            source.add_step_hook(self.observe, when="before")
-        clk.on_jump(post=self._jumped)
+            self._hooks.append(source.add_step_hook(self.observe, when="before"))
+        self._hooks.append(clk.on_jump(post=self._jumped))
         if self._live is not None and source is not None:  # a sim-time run: it can pause
             import asyncio
 
@@ -542,6 +543,9 @@ class Recorder:
         if self._closed:
             return
         try:
+            for hook in self._hooks:  # a closed recorder observes nothing more
+                hook.remove()
+            self._hooks.clear()
             if self._log_handler is not None:
                 logging.getLogger().removeHandler(self._log_handler)
             if self._writer is not None:

@@ -399,14 +399,17 @@ def step_hooks_of(scenario: Any) -> tuple[Any, Any]:
     return found[0], found[1]
 
 
-def install_step_hooks(scenario: Any, source: Any) -> None:
+def install_step_hooks(scenario: Any, source: Any) -> list[Any]:
     """Register the scenario's per-physics-step hooks (see :func:`step_hooks_of`) on the
-    stepping ``source``: ``before_step`` before every physics step, ``after_step`` after."""
+    stepping ``source``: ``before_step`` before every physics step, ``after_step`` after.
+    Returns the registered :class:`~evclock.sources.StepHook` handles (``remove()`` each)."""
     before, after = step_hooks_of(scenario)
+    hooks = []
     if before is not None:
-        source.add_step_hook(before, "before")
+        hooks.append(source.add_step_hook(before, "before"))
     if after is not None:
-        source.add_step_hook(after, "after")
+        hooks.append(source.add_step_hook(after, "after"))
+    return hooks
 
 
 def _set_up(cls: type[Any], client: int, seed: int, output: list[str]) -> Any:
