@@ -1,34 +1,56 @@
-"""Environment steps per second: evclock's Gymnasium environments against a minimal
-hand-written one, and async vector environments with 1 and 2 workers - one run.
+"""Environment steps per CPU second as a learner measures them: evclock's Gymnasium environments
+against Gymnasium's own, resets included; against a minimal hand-written environment; and
+async vector environments (``--vector``) - each in one run.
 
-Usage: python benchmarks/gym_steps.py [--steps 2000] [--repeat 3] [--vector-steps 500]
+Usage: python benchmarks/gym_steps.py [--steps 2000] [--rounds 5]
+       python benchmarks/gym_steps.py --vector [--vector-steps 200] [--rounds 5] [--workers 1 2 4]
 
-For each bundled environment on MuJoCo (``evclock/CartPole-v0``: 50 Hz agent, 240 Hz physics;
-``evclock/KukaReach-v0``: 100 Hz agent):
+Needs the ``bench`` extra (``pip install -e ".[bench]"``: Gymnasium, MuJoCo and what
+Gymnasium's MuJoCo environments import); PyBullet where it is installed.
 
-* **hand-written**: a minimal ``gymnasium.Env`` on the same scenario object (same MuJoCo
-  model, start state, observation, action and reward code): ``step`` writes the action, calls
-  ``mj_step`` for the physics steps up to the agent's next deadline (the same integer deadline
-  arithmetic as ``clock.rate``), and observes. Nothing else runs: no event loop, none of the
-  scenario's other controllers (the cart-pole's 240 Hz monitor and 50 Hz judge, the KUKA's
-  10 Hz IK planner);
-* **+ same work**: the same, also doing the other controllers' work inline at their rates (the
-  cart-pole's monitor at every physics step and its judge at every tick, the KUKA's IK planner
-  at 10 Hz): what the evclock environment does, without the loop;
-* **evclock**: ``gymnasium.make(id, engine="mujoco")``: the scenario's other controllers, timers
-  and the physics on an evclock loop, one period of the agent's controller per step.
+**Training** (the default run): what a learner measures during training - uniformly random
+actions (the action space seeded), ``reset()`` whenever an episode terminates or is truncated,
+one process, steps per CPU second (``time.process_time``) with the resets **included**:
 
-Reported: steps per CPU second and per wall second (best of the alternating rounds), the
-ratios to the minimal environment, and evclock's CPU ratio to the one doing the same work.
-Then an async vector environment of the cart-pole with 1 and 2 worker processes: total steps
-per wall second (its ended episodes reset in the workers). The policy: a fixed linear one
-balancing the cart-pole; zero actions (mid-range joints) on the KUKA.
+* Gymnasium's own ``InvertedPendulum-v5`` (MuJoCo), the baseline, and ``CartPole-v1`` (pure
+  Python);
+* ``evclock/CartPole-v0`` (50 Hz agent, 240 Hz physics) and ``evclock/KukaReach-v0`` (100 Hz
+  agent) on MuJoCo, and on PyBullet where it is installed (the table says so otherwise).
+
+Every environment is built with ``gymnasium.make`` (its default wrappers and time limit); the
+first reset is seeded (0), the next ones are not, as in a training loop. The environments run
+round by round, interleaved; per environment: the median of the rounds' steps per CPU second
+and of their ratios to ``InvertedPendulum-v5`` in the same round, the mean CPU time of a
+``reset()`` after an episode (ms; the first reset, which builds the environment, is not
+counted), the CPU time of a step alone (us, the resets' time taken out) and its ratio,
+and the mean episode length (steps).
+
+**Hand-written**: for each evclock environment on MuJoCo, its step alone (resets excluded,
+long episodes: a fixed linear policy balancing the cart-pole, zero actions on the KUKA)
+against a minimal ``gymnasium.Env`` on the same scenario object (same MuJoCo model, start
+state, observation, action and reward code): ``step`` writes the action, calls ``mj_step``
+for the physics steps up to the agent's next deadline (the same integer deadline arithmetic
+as ``clock.rate``), and observes. Nothing else runs: no event loop, none of the scenario's
+other controllers. ``+ same work`` does the other controllers' work inline at their rates
+(the cart-pole's monitor at every physics step and its judge at every tick, the KUKA's IK
+planner at 10 Hz): what the evclock environment does, without the loop. Reported: the
+median steps per CPU second and the median of the per-round ratios to the minimal one.
+
+**Vector** (``--vector``): ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="async")``
+with 1, 2 and 4 worker processes, random actions, ended episodes reset in their workers
+(Gymnasium's autoreset): total steps per wall second (the median of the rounds, the worker
+counts interleaved round by round), and the median of the per-round ratios to 1 worker; for
+``InvertedPendulum-v5`` and the evclock environments on MuJoCo. Workers scale only on free
+cores: the first line printed gives the machine's CPUs and load average.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import importlib.util
+import os
+import platform
+import statistics
 import time
 from typing import Any
 
@@ -37,10 +59,108 @@ import mujoco
 import numpy as np
 
 import evclock.gym  # noqa: F401  (registers the environments)
+from evclock.tools._runs import import_pybullet_quietly
 from evclock.tools._scenarios import load_scenario, open_world
 
+BASELINE = "InvertedPendulum-v5"
+GYMNASIUM = {BASELINE: "mujoco", "CartPole-v1": "-"}
+"""Gymnasium's own environments: id -> engine."""
+EVCLOCK = {"evclock/CartPole-v0": "cartpole", "evclock/KukaReach-v0": "kuka"}
+"""evclock's environments: id -> scenario."""
 PHYSICS_HZ = 240
-ENVS = {"evclock/CartPole-v0": "cartpole", "evclock/KukaReach-v0": "kuka"}
+
+
+def engines() -> list[str]:
+    """The engines measured: MuJoCo, and PyBullet where it is installed."""
+    if importlib.util.find_spec("pybullet") is None:
+        return ["mujoco"]
+    import_pybullet_quietly()  # without its build-time banner
+    return ["mujoco", "pybullet"]
+
+
+def make(env_id: str, engine: str, **kwargs: Any) -> Any:
+    """``gymnasium.make`` of ``env_id``, on ``engine`` for an evclock environment."""
+    if env_id in GYMNASIUM:
+        return gymnasium.make(env_id)
+    return gymnasium.make(env_id, engine=engine, **kwargs)
+
+
+# --- training: random actions, resets included ------------------------------------------
+
+
+class Training:
+    """One environment stepped with random actions across rounds, reset whenever its
+    episode ends: each round's steps per CPU second with its resets and without them."""
+
+    def __init__(self, env_id: str, engine: str) -> None:
+        self.env_id, self.engine = env_id, engine
+        self.env = make(env_id, engine)
+        self.env.action_space.seed(0)
+        self.rates: list[float] = []  # steps per CPU second, resets included
+        self.step_rates: list[float] = []  # steps per CPU second, resets taken out
+        self.steps = self.episodes = 0
+        self.reset_cpu = 0.0  # of the resets between episodes (not the first, which builds)
+        self.env.reset(seed=0)
+
+    def round(self, steps: int) -> None:
+        env, sample = self.env, self.env.action_space.sample
+        resets = 0.0
+        start = time.process_time()
+        for _ in range(steps):
+            _, _, terminated, truncated, _ = env.step(sample())
+            if terminated or truncated:
+                reset0 = time.process_time()
+                env.reset()
+                resets += time.process_time() - reset0
+                self.episodes += 1
+        cpu = time.process_time() - start
+        self.rates.append(steps / cpu)
+        self.step_rates.append(steps / (cpu - resets))
+        self.reset_cpu += resets
+        self.steps += steps
+
+
+def median_ratio(values: list[float], base: list[float]) -> float:
+    """The median of the per-round ratios ``values[k] / base[k]``."""
+    return statistics.median(a / b for a, b in zip(values, base, strict=True))
+
+
+def training(steps: int, rounds: int) -> None:
+    envs = [Training(env_id, engine) for env_id, engine in GYMNASIUM.items()]
+    envs += [Training(env_id, engine) for engine in engines() for env_id in EVCLOCK]
+    for _ in range(rounds):
+        for env in envs:
+            env.round(steps)
+    base = envs[0]
+    print(
+        f"training: random actions, resets included; {steps} steps x {rounds} rounds, "
+        f"medians of the rounds; ratios to {BASELINE} in the same round"
+    )
+    print(
+        f"{'environment':<22}{'engine':<10}{'steps/CPU s':>12}{'ratio':>8}{'reset ms':>10}"
+        f"{'step us':>9}{'ratio':>8}{'episode':>9}"
+    )
+    for env in envs:
+        ended = env.episodes  # no episode ended: no reset measured, episodes longer than that
+        reset = f"{1e3 * env.reset_cpu / ended:.3f}" if ended else "-"
+        episode = f"{env.steps / ended:.1f}" if ended else f">{env.steps}"
+        print(
+            f"{env.env_id:<22}{env.engine:<10}{statistics.median(env.rates):>12,.0f}"
+            f"{median_ratio(env.rates, base.rates):>8.3f}{reset:>10}"
+            f"{1e6 / statistics.median(env.step_rates):>9.1f}"
+            f"{median_ratio(env.step_rates, base.step_rates):>8.3f}{episode:>9}"
+        )
+        env.env.close()
+    if "pybullet" not in engines():
+        print("PyBullet: not installed here, its rows skipped")
+    print(
+        "(reset ms: mean CPU time of a reset() after an episode; step us: CPU time of a step "
+        f"alone, resets taken out, and the ratio of its rate to {BASELINE}'s; episode: mean "
+        "steps per episode)"
+    )
+
+
+# --- the step alone, against a hand-written environment -----------------------------------
 
 
 class HandWritten(gymnasium.Env[Any, Any]):
@@ -101,6 +221,9 @@ class HandWritten(gymnasium.Env[Any, Any]):
         terminated = bool(scenario.terminated())
         return scenario.observe(), float(scenario.reward()), terminated, False, {}
 
+    def close(self) -> None:
+        self.source.close()
+
 
 BALANCE = np.array([0.0, 3.0, 0.0, 0.5])
 """A linear cart-pole policy that keeps the pole up for seconds (long episodes)."""
@@ -114,14 +237,14 @@ def policy_for(env: Any) -> Any:
     return lambda _observation: zero
 
 
-def measure(env: Any, steps: int) -> tuple[float, float]:
-    """Steps per CPU second and per wall second over ``steps`` steps (resets excluded)."""
+def step_rate(env: Any, steps: int) -> float:
+    """Steps per CPU second over ``steps`` steps (resets excluded)."""
     act = policy_for(env)
     observation, _ = env.reset(seed=1)
-    cpu = wall = 0.0
+    cpu = 0.0
     done = 0
     while done < steps:
-        cpu0, wall0 = time.process_time(), time.perf_counter()
+        cpu0 = time.process_time()
         n = 0
         while done + n < steps:
             observation, _, terminated, truncated, _ = env.step(act(observation))
@@ -129,70 +252,102 @@ def measure(env: Any, steps: int) -> tuple[float, float]:
             if terminated or truncated:
                 break
         cpu += time.process_time() - cpu0
-        wall += time.perf_counter() - wall0
         done += n
         if done < steps:
             observation, _ = env.reset(seed=1)
-    return steps / cpu, steps / wall
+    return steps / cpu
 
 
-def vector_rate(workers: int, steps: int) -> float:
-    """Total steps per wall second of an async vector cart-pole with ``workers`` processes."""
-    vector = gymnasium.make_vec(
-        "evclock/CartPole-v0", num_envs=workers, vectorization_mode="async", engine="mujoco"
+def hand_written(steps: int, rounds: int) -> None:
+    print(
+        f"the step alone (resets excluded, long episodes), MuJoCo; {steps} steps x {rounds} "
+        "rounds, medians; ratios to the hand-written environment in the same round"
     )
-    observations, _ = vector.reset(seed=list(range(workers)))
-    wall0 = time.perf_counter()
-    for _ in range(steps):
-        actions = np.clip(observations @ BALANCE, -1.0, 1.0)[:, None]
-        # Autoreset: an ended episode starts over in its worker.
-        observations, *_ = vector.step(actions)
-    wall = time.perf_counter() - wall0
-    vector.close()
-    return workers * steps / wall
+    print(f"{'environment':<22}{'variant':<14}{'steps/CPU s':>12}{'ratio':>8}")
+    for env_id, name in EVCLOCK.items():
+        envs = {
+            "hand-written": HandWritten(name),
+            "+ same work": HandWritten(name, same_work=True),
+            "evclock": make(env_id, "mujoco", max_episode_seconds=1e6),
+        }
+        rates: dict[str, list[float]] = {variant: [] for variant in envs}
+        for _ in range(rounds):
+            for variant, env in envs.items():
+                rates[variant].append(step_rate(env, steps))
+        base = rates["hand-written"]
+        for variant, rate in rates.items():
+            ratio = median_ratio(rate, base)
+            print(f"{env_id:<22}{variant:<14}{statistics.median(rate):>12,.0f}{ratio:>8.3f}")
+        same = median_ratio(rates["evclock"], rates["+ same work"])
+        print(f"{'':<22}evclock / hand-written with the same work: {same:.3f}")
+        for env in envs.values():
+            env.close()
+
+
+# --- async vector environments -------------------------------------------------------------
+
+
+def vector_rates(env_id: str, workers: list[int], steps: int, rounds: int) -> list[list[float]]:
+    """Total steps per wall second of async vector ``env_id``s with each count of ``workers``
+    processes, per round (the vector environments step in turn in each round), random
+    actions; Gymnasium's autoreset starts an ended episode over in its worker."""
+    kwargs = {} if env_id in GYMNASIUM else {"engine": "mujoco"}
+    vectors = [
+        gymnasium.make_vec(env_id, num_envs=n, vectorization_mode="async", **kwargs)
+        for n in workers
+    ]
+    for n, vector in zip(workers, vectors, strict=True):
+        vector.action_space.seed(0)
+        vector.reset(seed=list(range(n)))
+    rates: list[list[float]] = [[] for _ in workers]
+    for _ in range(rounds):
+        for n, vector, rate in zip(workers, vectors, rates, strict=True):
+            wall0 = time.perf_counter()
+            for _ in range(steps):
+                vector.step(vector.action_space.sample())
+            rate.append(n * steps / (time.perf_counter() - wall0))
+    for vector in vectors:
+        vector.close()
+    return rates
+
+
+def vector(steps: int, rounds: int, workers: list[int]) -> None:
+    print(
+        f"async vector environments (make_vec, vectorization_mode='async'), MuJoCo: {steps} "
+        f"steps x {rounds} rounds, random actions, autoreset; total steps per wall second "
+        f"(median of the rounds) and the median of the per-round ratios to {workers[0]} worker(s)"
+    )
+    print(f"{'environment':<22}" + "".join(f"{f'{n} worker(s)':>18}" for n in workers))
+    for env_id in [BASELINE, *EVCLOCK]:
+        rates = vector_rates(env_id, workers, steps, rounds)
+        cells = "".join(
+            f"{f'{statistics.median(rate):,.0f} ({median_ratio(rate, rates[0]):.2f}x)':>18}"
+            for rate in rates
+        )
+        print(f"{env_id:<22}{cells}")
+
+
+def machine() -> str:
+    """The interpreter, the CPUs and the load average, which the figures depend on."""
+    load = os.getloadavg()[0]
+    return f"python {platform.python_version()}, {os.cpu_count()} CPUs, load average {load:.1f}"
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--steps", type=int, default=2000, help="steps per round")
-    parser.add_argument("--repeat", type=int, default=3, help="alternating rounds")
-    parser.add_argument("--vector-steps", type=int, default=500, help="vector steps")
+    parser.add_argument("--rounds", type=int, default=5, help="interleaved rounds")
+    parser.add_argument("--vector", action="store_true", help="the async vector environments")
+    parser.add_argument("--vector-steps", type=int, default=200, help="vector steps per round")
+    parser.add_argument("--workers", type=int, nargs="+", default=[1, 2, 4])
     args = parser.parse_args()
-    print(f"{args.steps} steps x {args.repeat} rounds, best of the rounds")
-    header = (
-        f"{'environment':<22}{'variant':<14}{'steps/CPU s':>13}{'ratio':>8}"
-        f"{'steps/wall s':>14}{'ratio':>8}"
-    )
-    print(header)
-    for env_id, name in ENVS.items():
-        envs = {
-            "hand-written": HandWritten(name),
-            "+ same work": HandWritten(name, same_work=True),
-            "evclock": gymnasium.make(env_id, engine="mujoco", max_episode_seconds=1e6),
-        }
-        best = {variant: (0.0, 0.0) for variant in envs}
-        for _ in range(args.repeat):
-            for variant, env in envs.items():
-                cpu, wall = measure(env, args.steps)
-                best[variant] = (max(best[variant][0], cpu), max(best[variant][1], wall))
-        base = best["hand-written"]
-        same = best["+ same work"]
-        for variant, (cpu, wall) in best.items():
-            print(
-                f"{env_id:<22}{variant:<14}{cpu:>13,.0f}{cpu / base[0]:>8.3f}"
-                f"{wall:>14,.0f}{wall / base[1]:>8.3f}"
-            )
-        evclock_cpu = best["evclock"][0]
-        print(f"{'':<22}evclock / hand-written with the same work: {evclock_cpu / same[0]:.3f}")
-        for env in envs.values():
-            env.close()
-    rates = {workers: vector_rate(workers, args.vector_steps) for workers in (1, 2)}
-    for workers, rate in rates.items():
-        print(
-            f"async vector evclock/CartPole-v0, {workers} worker(s): {rate:,.0f} steps/wall s "
-            f"({rate / rates[1]:.2f}x)"
-        )
-    assert all(math.isfinite(rate) for rate in rates.values())
+    print(machine())
+    if args.vector:
+        vector(args.vector_steps, args.rounds, args.workers)
+        return
+    training(args.steps, args.rounds)
+    print()
+    hand_written(args.steps, args.rounds)
 
 
 if __name__ == "__main__":

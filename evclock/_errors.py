@@ -195,6 +195,11 @@ class Ros2MessageError(EvClockError, ValueError):
     """A ROS 2 ``/clock`` sample evclock cannot read: bad CDR, invalid time, unknown type hash."""
 
 
+class Ros2SubscribersError(EvClockError, TimeoutError):
+    """A ROS 2 publisher waited for its subscribers (``--ros2-wait-for-subscribers``) longer
+    than its timeout; the message says how many matched and how many were awaited."""
+
+
 class WrongThreadError(NotRunningError):
     """A method that runs only on a loop's (or driver's) own thread was called from another;
     the message names the thread-safe way to get it done (``run_coroutine_threadsafe``)."""

@@ -152,6 +152,7 @@ class Scenario(abc.ABC):
         returning the coroutine that runs instead (see :meth:`replace_controller`)."""
         self.world: MuJoCoWorld | None = None
         """The MuJoCo world, on MuJoCo (None on PyBullet)."""
+        self._robot_urdf: Path | None = None
         self.pb: Any = None
         """The PyBullet API the controllers call: the ``pybullet`` module, or a stand-in that
         forwards the calls to the simulation process when the controllers run in another one
@@ -181,10 +182,23 @@ class Scenario(abc.ABC):
         p.setGravity(0.0, 0.0, GRAVITY, physicsClientId=world)
         p.setTimeStep(1.0 / PHYSICS_HZ, physicsClientId=world)
 
-    def load_urdf(self, relative: str, **kwargs: Any) -> int:
-        """Load a ``pybullet_data`` URDF into this scenario's PyBullet client; its body id."""
-        body: int = pybullet().loadURDF(data_path(relative), physicsClientId=self.client, **kwargs)
+    def load_urdf(self, relative: str, *, robot: bool = False, **kwargs: Any) -> int:
+        """Load a ``pybullet_data`` URDF into this scenario's PyBullet client; its body id.
+        ``robot=True`` names it the scenario's robot (:attr:`robot_urdf`)."""
+        path = data_path(relative)
+        body: int = pybullet().loadURDF(path, physicsClientId=self.client, **kwargs)
+        if robot:
+            self._robot_urdf = Path(path)
         return body
+
+    @property
+    def robot_urdf(self) -> Path | None:
+        """The URDF file of the scenario's robot (what ``evclock run --ros2`` publishes on
+        ``/robot_description``): on MuJoCo the world's, on PyBullet the one loaded with
+        ``load_urdf(..., robot=True)``; None when the scenario names none."""
+        if self.world is not None:
+            return self.world.urdf
+        return self._robot_urdf
 
     def before_step(self) -> None:
         """Called before every physics step, when a subclass overrides it (``evclock run``

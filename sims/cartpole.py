@@ -57,7 +57,7 @@ class PyBulletCart:
         p = pybullet()
         self._p = p
         self.scenario = scenario
-        self.robot = scenario.load_urdf("cartpole.urdf", useFixedBase=True)
+        self.robot = scenario.load_urdf("cartpole.urdf", robot=True, useFixedBase=True)
         p.setJointMotorControlArray(
             self.robot,
             [SLIDER, POLE],
@@ -122,7 +122,7 @@ class MuJoCoCart:
         self._mj = world.mj
         self._qpos = [world.joint_index(name)[0] for name in JOINT_NAMES]
         self._dofs = [world.joint_index(name)[1] for name in JOINT_NAMES]
-        self._scratch = world.mj.MjData(world.model)
+        self._scratch = world.scratch()
 
     def _at(self, q: Sequence[float]) -> Any:
         scratch = self._scratch
@@ -178,10 +178,30 @@ def _expm(matrix: np.ndarray) -> np.ndarray:
     return result
 
 
+_GAINS: dict[tuple[bytes, ...], np.ndarray] = {}
+"""The gains :func:`discrete_lqr` solved, by the exact bytes of its inputs."""
+
+
 def discrete_lqr(
     a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, dt: float
 ) -> np.ndarray:
-    """Gain ``K`` (``u = -K x``) of the discrete LQR for ``dx/dt = a x + b u`` held over ``dt``."""
+    """Gain ``K`` (``u = -K x``) of the discrete LQR for ``dx/dt = a x + b u`` held over ``dt``.
+
+    Solved once per distinct input (bit for bit) and process: the cart-pole asks again at
+    every build, with the same model (a reset in place builds it again), and the Riccati
+    iteration takes tens of milliseconds. Returns a new array each time.
+    """
+    a, b, q, r = (np.ascontiguousarray(x, dtype=np.float64) for x in (a, b, q, r))
+    key = (*(x.tobytes() + str(x.shape).encode() for x in (a, b, q, r)), np.float64(dt).tobytes())
+    gain = _GAINS.get(key)
+    if gain is None:
+        gain = _GAINS[key] = _solve_discrete_lqr(a, b, q, r, dt)
+    return gain.copy()
+
+
+def _solve_discrete_lqr(
+    a: np.ndarray, b: np.ndarray, q: np.ndarray, r: np.ndarray, dt: float
+) -> np.ndarray:
     n, m = b.shape
     augmented = np.zeros((n + m, n + m))
     augmented[:n, :n] = a
@@ -241,12 +261,7 @@ class CartPole(Scenario):
         else:
             self.cart = PyBulletCart(self)
             self.robot = self.cart.robot
-        self.gain = discrete_lqr(
-            *self._linearise(),
-            np.diag(self.state_cost),
-            np.array([[self.force_cost]]),
-            1.0 / self.balance_hz,
-        )
+        self.gain = self._lqr_gain()
         tilt = math.radians(float(self.rng.uniform(2.0, 6.0))) * float(self.rng.choice([-1, 1]))
         self.cart.tilt(tilt)
         self.initial_tilt = tilt
@@ -254,6 +269,24 @@ class CartPole(Scenario):
         self.max_cart_offset = 0.0
         self.balanced_for = 0.0
         """Seconds the balance loop has kept the pole up."""
+
+    def _lqr_gain(self) -> np.ndarray:
+        """The LQR gain of the engine's model: derived once per MuJoCo world (a scenario
+        built again in it reuses it), solved once per process (:func:`discrete_lqr`)."""
+
+        def solve() -> np.ndarray:
+            return discrete_lqr(
+                *self._linearise(),
+                np.diag(self.state_cost),
+                np.array([[self.force_cost]]),
+                1.0 / self.balance_hz,
+            )
+
+        if self.world is None:
+            return solve()
+        key = ("cartpole.gain", self.state_cost, self.force_cost, self.balance_hz)
+        gain: np.ndarray = self.world.derived(key, solve)
+        return gain.copy()
 
     def _linearise(self) -> tuple[np.ndarray, np.ndarray]:
         """Continuous ``(A, B)`` at upright rest from the engine's mass matrix and gravity."""

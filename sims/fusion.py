@@ -110,7 +110,7 @@ class LandmarkFusion(Scenario):
         """Load the plane, the Husky at the origin and a pillar beside a seeded arc."""
         super().__init__(client, seed)
         self.load_urdf("plane.urdf")
-        self.robot = self.load_urdf("husky/husky.urdf")
+        self.robot = self.load_urdf("husky/husky.urdf", robot=True)
         self.turn_rate = float(self.rng.uniform(0.25, 0.45))
         """rad/s: the arc's curvature (seeded)."""
         radius = self.speed / self.turn_rate

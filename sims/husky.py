@@ -84,7 +84,7 @@ class HuskyPatrol(Scenario):
         """Load the plane, the Husky at the origin facing +x, seeded waypoints and the obstacle."""
         super().__init__(client, seed)
         self.load_urdf("plane.urdf")
-        self.robot = self.load_urdf("husky/husky.urdf")
+        self.robot = self.load_urdf("husky/husky.urdf", robot=True)
         jitter = self.rng.uniform(-self.waypoint_jitter, self.waypoint_jitter, size=(3, 2))
         self.waypoints = [np.array(w) + d for w, d in zip(BASE_WAYPOINTS, jitter, strict=True)]
         heading = self.waypoints[-1] - self.waypoints[-2]

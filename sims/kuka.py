@@ -9,8 +9,11 @@ Two concurrent controllers:
   the IK solution at a bounded joint speed and sends them as position-control targets.
 
 The KUKA implements the agent protocol of :mod:`evclock.gym`: a learning agent (or a trained
-policy) replaces ``joint_control``, observing the joints, the planner's goal, the flange and its
-target, and commanding the joint positions, while the planner keeps planning.
+policy) replaces ``joint_control`` (by default), observing the joints, the planner's goal, the
+flange and its target, and commanding the joint positions, while the planner keeps planning; or
+it replaces the ``planner``, observing the joints, the flange and its target, and choosing the
+joint goal the joint controller slews toward, while the mission keeps tracking the targets (in
+a 10 Hz loop then named ``targets``).
 
 The controllers are the same on both engines; only the arm's interface differs
 (:class:`PyBulletArm`: ``POSITION_CONTROL`` motors and PyBullet's IK; :class:`MuJoCoArm`:
@@ -70,7 +73,7 @@ class PyBulletArm:
         self._p = p
         self.scenario = scenario
         client = scenario.client
-        self.robot = scenario.load_urdf("kuka_iiwa/model.urdf", useFixedBase=True)
+        self.robot = scenario.load_urdf("kuka_iiwa/model.urdf", robot=True, useFixedBase=True)
         self.joints = list(range(p.getNumJoints(self.robot, physicsClientId=client)))
         infos = [p.getJointInfo(self.robot, j, physicsClientId=client) for j in self.joints]
         self.lower = [info[8] for info in infos]
@@ -165,7 +168,7 @@ class MuJoCoArm:
         data.ctrl[:] = REST_POSE
         world.forward()
         self.flange = world.body_index(FLANGE_BODY)
-        self._scratch = mj.MjData(model)
+        self._scratch = world.scratch()
         self._down = np.zeros(4)
         mj.mju_euler2Quat(self._down, np.array(FLANGE_DOWN), "xyz")
         self._jacp = np.zeros((3, model.nv))
@@ -247,6 +250,7 @@ class KukaReach(Scenario):
     """Metres: seeded uniform jitter added to each chosen candidate target."""
     engines = ("pybullet", "mujoco")
     agent_controller = "joint_control"
+    agent_controllers = ("joint_control", "planner")
     policy = ""
     """A trained policy in place of joint_control: a .npz file of evclock.gym.LinearPolicy, or
     module:callable (see evclock.gym). Empty: the joint
@@ -281,6 +285,8 @@ class KukaReach(Scenario):
         self.reached_at: list[float] = []
         self.goal = np.array(REST_POSE)
         """Joint positions the planner asks for (latest IK solution)."""
+        self._set_goal: tuple[int, np.ndarray] | None = None  # an agent's: (sim ns, goal before)
+        self._clock: ClockLike | None = None
         self.final_error = float("inf")
         self.index = 0
         """The index of the target the planner heads for."""
@@ -292,18 +298,40 @@ class KukaReach(Scenario):
     def _services(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
         return {"joint_control": self._joint_control(clock)}
 
+    def _controllers(self, clock: ClockLike) -> dict[str, Coroutine[Any, Any, None]]:
+        """The background controllers, and the one replacing the planner when one does (the
+        planner is the mission's: the mission then only tracks the targets)."""
+        planner = self.replaced.get("planner")
+        if planner is None:
+            return super()._controllers(clock)
+        replaced = self.replaced
+        self.replaced = {label: other for label, other in replaced.items() if label != "planner"}
+        try:
+            services = super()._controllers(clock)
+        finally:
+            self.replaced = replaced
+        services["planner"] = planner(clock)
+        return services
+
     async def _joint_control(self, clock: ClockLike) -> None:
         """Slew the position command toward :attr:`goal` and send it every tick."""
         command = np.array(REST_POSE)
         max_step = self.max_joint_speed / self.control_hz
-        async for _tick in clock.rate(self.control_hz, name="joint_control"):
-            command += np.clip(self.goal - command, -max_step, max_step)
+        self._clock = clock
+        async for tick in clock.rate(self.control_hz, name="joint_control"):
+            goal = self.goal
+            if self._set_goal is not None and self._set_goal[0] == tick.actual.nanoseconds:
+                goal = self._set_goal[1]  # an agent's goal of this instant: from the next tick
+            command += np.clip(goal - command, -max_step, max_step)
             self.arm.command(command.tolist())
 
     async def _mission(self, clock: ClockLike) -> None:
-        """Plan toward each target in turn; return once the last one is reached."""
+        """Plan toward each target in turn (unless the planner is replaced); return once the
+        last one is reached."""
         within_since: float | None = None
-        async for tick in clock.rate(self.planner_hz, name="planner"):
+        planning = "planner" not in self.replaced
+        name = "planner" if planning else "targets"
+        async for tick in clock.rate(self.planner_hz, name=name):
             index = self.index
             target = self.targets[index]
             self.final_error = float(np.linalg.norm(self.flange_position() - target))
@@ -319,43 +347,64 @@ class KukaReach(Scenario):
                 if index == len(self.targets):
                     return
                 target = self.targets[index]
-            self.goal = np.array(self._inverse_kinematics(target))
+            if planning:
+                self.goal = np.array(self._inverse_kinematics(target))
 
     def _inverse_kinematics(self, target: np.ndarray) -> list[float]:
         """Joint positions putting the flange at ``target``, pointing down, near the rest pose."""
         return self.arm.inverse_kinematics(target)
 
-    # The agent protocol (evclock.gym): the agent replaces ``joint_control``.
+    # The agent protocol (evclock.gym): the agent replaces ``joint_control`` (default) or
+    # the ``planner`` (set ``agent_controller`` on the instance).
 
     @property
     def agent_hz(self) -> float:
-        """The rate of the agent's controller: :attr:`control_hz`."""
-        return self.control_hz
+        """The rate of the agent's controller: :attr:`control_hz` (``joint_control``) or
+        :attr:`planner_hz` (``planner``)."""
+        return self.planner_hz if self.agent_controller == "planner" else self.control_hz
 
     def observation_space(self) -> Any:
-        """Joint angles (7, rad), the planner's goal angles (7, rad), the flange position
-        (3, m) and the current target (3, m): within +-pi rad (every joint's range is
-        narrower) and +-2 m (the arm reaches 1.3 m)."""
+        """For ``joint_control``: joint angles (7, rad), the planner's goal angles (7, rad),
+        the flange position (3, m) and the current target (3, m); for the ``planner``: the
+        same without the goal. Within +-pi rad (every joint's range is narrower) and +-2 m
+        (the arm reaches 1.3 m)."""
         spaces = import_extra("gymnasium.spaces", "gym", needed_by="the KUKA's agent")
-        bound = np.array([math.pi] * 14 + [2.0] * 6)
+        angles = 7 if self.agent_controller == "planner" else 14
+        bound = np.array([math.pi] * angles + [2.0] * 6)
         return spaces.Box(-bound, bound, dtype=np.float64)
 
     def action_space(self) -> Any:
-        """Joint position targets, each joint's range mapped onto [-1, 1] (-1: its lower
-        limit, 1: its upper limit)."""
+        """Joint positions, each joint's range mapped onto [-1, 1] (-1: its lower limit, 1:
+        its upper limit): the joints' position targets (``joint_control``), or the goal the
+        joint controller slews toward (``planner``)."""
         spaces = import_extra("gymnasium.spaces", "gym", needed_by="the KUKA's agent")
         return spaces.Box(-1.0, 1.0, shape=(len(self.joints),), dtype=np.float64)
 
     def observe(self) -> np.ndarray:
-        """Joint angles, planner goal, flange position and current target, concatenated."""
+        """Joint angles, planner goal (for ``joint_control`` only), flange position and
+        current target, concatenated."""
         target = self.targets[min(self.index, len(self.targets) - 1)]
-        parts = (self.arm.joint_positions(), self.goal, self.flange_position(), target)
+        joints, flange = self.arm.joint_positions(), self.flange_position()
+        if self.agent_controller == "planner":
+            parts: tuple[np.ndarray, ...] = (joints, flange, target)
+        else:
+            parts = (joints, self.goal, flange, target)
         return np.concatenate(parts).astype(np.float64)
 
     def act(self, action: np.ndarray) -> None:
-        """Send ``action`` (see :meth:`action_space`) as the joints' position targets."""
+        """Apply ``action`` (see :meth:`action_space`): the joints' position targets, or the
+        planner's goal."""
         lower, upper = np.array(self.lower), np.array(self.upper)
-        self.arm.command((lower + (action + 1.0) * 0.5 * (upper - lower)).tolist())
+        positions = lower + (action + 1.0) * 0.5 * (upper - lower)
+        if self.agent_controller == "planner":
+            # The joint controller takes it from its next tick, also when it ticks at this
+            # same instant after the agent: the same in an environment (which acts once the
+            # tick's other work is done) as under a policy acting within the tick.
+            assert self._clock is not None
+            self._set_goal = (self._clock.now().nanoseconds, self.goal)
+            self.goal = positions
+        else:
+            self.arm.command(positions.tolist())
 
     def reward(self) -> float:
         """Minus the flange's distance to the current target, in metres (0 once all are

@@ -4,6 +4,11 @@ A scenario that hosts a learning agent (``evclock_sims.CartPole``, ``evclock_sim
 names the background controller the agent replaces (``agent_controller``, a label of its
 ``_services``), that controller's rate (``agent_hz``), and six methods: the spaces, what the
 agent observes, how its action is applied, the reward and whether the state is terminal.
+
+A scenario whose agent may replace one of several controllers lists them in
+``agent_controllers`` (``agent_controller`` is the default); an environment or a policy that
+replaces another one sets the scenario's ``agent_controller`` (an instance attribute) to it
+before anything else, and the rate, spaces, ``observe`` and ``act`` are then that controller's.
 """
 
 from __future__ import annotations
@@ -33,7 +38,11 @@ class AgentScenario(Protocol):
     """
 
     agent_controller: ClassVar[str | None]
-    """The label of the background controller (of ``_services``) the agent replaces."""
+    """The label of the background controller (of ``_services``) the agent replaces by
+    default (set on an instance: the one it replaces there, one of ``agent_controllers``)."""
+
+    agent_controllers: ClassVar[tuple[str, ...]]
+    """Optional: every controller an agent may replace (default: ``agent_controller`` only)."""
 
     @property
     def agent_hz(self) -> float:
@@ -70,15 +79,27 @@ class AgentScenario(Protocol):
         ...
 
 
+def agent_controllers(scenario: Any) -> tuple[str, ...]:
+    """The controllers an agent may replace in ``scenario`` (a class or an instance): its
+    ``agent_controllers``, else its ``agent_controller`` alone (empty when it names none)."""
+    choices = getattr(scenario, "agent_controllers", None)
+    if choices is None:
+        label = getattr(scenario, "agent_controller", None)
+        return (label,) if isinstance(label, str) else ()
+    return tuple(choices)
+
+
 def check_protocol(scenario: Any, controller: str | None = None) -> str:
     """Check that ``scenario`` (a scenario class or instance) implements the agent protocol
-    and that ``controller`` is the one its agent replaces.
+    and that ``controller`` is one its agent may replace.
 
     :param scenario: a scenario class or instance.
-    :param controller: the controller the caller wants to replace (None: the scenario's).
+    :param controller: the controller the caller wants to replace (None: the scenario's
+        ``agent_controller``).
     :returns: the label of the replaced controller.
     :raises AgentProtocolError: a method or attribute of the protocol is missing, or
-        ``controller`` is not the one the scenario lets an agent replace.
+        ``controller`` is not one the scenario lets an agent replace (the message names
+        those).
     """
     cls = scenario if isinstance(scenario, type) else type(scenario)
     name = getattr(cls, "name", cls.__name__)
@@ -92,18 +113,21 @@ def check_protocol(scenario: Any, controller: str | None = None) -> str:
             f"lacks {', '.join(missing)}; implement them (see the guide 'Reinforcement "
             "learning', 'The agent protocol')"
         )
-    label = getattr(cls, "agent_controller", None)
+    label = getattr(scenario, "agent_controller", None)
     if not isinstance(label, str):
         raise AgentProtocolError(
             f"scenario {name!r} names no controller an agent can replace: set its class "
             "attribute agent_controller to the label of one of its background controllers"
         )
-    if controller is not None and controller != label:
+    if controller is None:
+        return label
+    choices = agent_controllers(scenario)
+    if controller not in choices:
         raise AgentProtocolError(
-            f"scenario {name!r} lets an agent replace its controller {label!r}, not "
-            f"{controller!r}: pass controller={label!r} (or leave it out)"
+            f"scenario {name!r} has no controller {controller!r} an agent can replace; "
+            f"choose one of: {', '.join(map(repr, choices))}"
         )
-    return label
+    return controller
 
 
 def check_rate(scenario: Any) -> float:

@@ -604,7 +604,7 @@ class SimDriver(PacingControls):
         assert loop is not None
         return loop.create_future()
 
-    def anything_runnable(self) -> bool:
+    def _anything_runnable(self) -> bool:
         """Whether a task became runnable (a stepping source stops stepping then). False
         after a lockstep overrun: time advances anyway."""
         if self._overran:
@@ -612,31 +612,31 @@ class SimDriver(PacingControls):
         ready = self._ready_queue
         return bool(ready) if ready is not None else bool(self._probe)
 
-    def held_horizon(self, paused: bool) -> int | None:
+    def _held_horizon(self, paused: bool) -> int | None:
         """0 while :meth:`hold_time` holds sim time, else None (the driver sees no threads:
         ``paused`` changes nothing here)."""
         return 0 if self._holds > 0 else None
 
-    def before_moving(self) -> None:
+    def _before_moving(self) -> None:
         """Nothing to take in: the host loop serves its own I/O while the driver yields."""
 
-    def could_wake(self) -> bool:
+    def _could_wake(self) -> bool:
         """Always: the host loop may serve I/O the driver cannot see, so idle is no deadlock."""
         return True
 
-    def interrupt_wait(self) -> None:
+    def _interrupt_wait(self) -> None:
         """End the driver's current wait (an earlier deadline, a jump, news from outside)."""
         self._wake_driver()
 
-    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+    def _serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` may wait on this driver's sim time (for sources)."""
         return self._state is _RUNNING and loop is self._loop
 
-    def is_closed(self) -> bool:
+    def _is_closed(self) -> bool:
         """True once stopped (a source then moves its time without a jump)."""
         return self._state is _STOPPED
 
-    def call_exception_handler(self, context: dict[str, Any]) -> None:
+    def _call_exception_handler(self, context: dict[str, Any]) -> None:
         """Report an error from a source (a failing step hook) to the host loop."""
         loop = self._loop
         assert loop is not None

@@ -81,7 +81,7 @@ _thread_limbo = thread_limbo
 DEFAULT_STALL_TIMEOUT = 60.0
 #: While a thread (not an executor job) holds time, re-check it this often (wall seconds).
 _THREAD_POLL = 0.001
-#: Wall seconds between the two looks that confirm a deadlock (see could_wake).
+#: Wall seconds between the two looks that confirm a deadlock (see _could_wake).
 _DEADLOCK_CONFIRM = 0.02
 #: While an external source waits for the outside, ask it again this often (wall seconds)
 #: even if no I/O arrives, so that it can check its own liveness deadline.
@@ -260,24 +260,24 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             watch_threads=bool(watch_threads),
             sim_now=lambda: self._core.now_ns,
         )
-        #: What held sim time at the last held_horizon() (EXACT or INFERRED): how to wait.
+        #: What held sim time at the last _held_horizon() (EXACT or INFERRED): how to wait.
         self._holder: str | None = None
-        # held_horizon() found nothing outside but an external source's own connection or
-        # I/O whose owners account for it: before_moving(), asked next, need not poll.
+        # _held_horizon() found nothing outside but an external source's own connection or
+        # I/O whose owners account for it: _before_moving(), asked next, need not poll.
         self._outside_silent = False
         # EXTERNAL-SOURCE HOOK: fds whose traffic their owner accounts for exactly (the
         # clock server's participant connections): not inferred as work in flight.
         self._accounted_fds: set[int] = set()  # membership only, never iterated
         # I/O was polled after callbacks last ran: what that poll made ready is what
         # asyncio's per-iteration select would have, so running those callbacks needs no
-        # other zero-timeout poll first (a move of time always polls: before_moving).
+        # other zero-timeout poll first (a move of time always polls: _before_moving).
         self._io_fresh = False
         # A callback came from another thread (call_soon_threadsafe) since the last advance.
         self._woken_from_outside = False
         # EXTERNAL-SOURCE HOOK: whether the source is external (it may name its fd:
         # TimeSource.io_fd).
         self._source_external = source.external
-        # wait_for_source's poll object: the source's fd and the self-pipe (built once).
+        # _wait_for_source's poll object: the source's fd and the self-pipe (built once).
         self._source_poller: Any = None
         self._source_poller_fd: int | None = None
         self._sim_clock: SimClock | None = None
@@ -492,7 +492,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         while True:
             if ready or self._stopping:
                 # One poll between runs of callbacks, as asyncio's select: here when
-                # callbacks are ready, else in the rule (before_moving, before time moves, or a
+                # callbacks are ready, else in the rule (_before_moving, before time moves, or a
                 # wait).
                 if (
                     len(io_map) > self._quiet_fds  # OUTSIDE HOOK: real I/O or signals
@@ -527,7 +527,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
                         and not (self._source_external and self._source_alone())
                     ):
                         # Callbacks another thread queued while time moved come after a
-                        # poll too: when before_moving skips its poll (I/O whose owners
+                        # poll too: when _before_moving skips its poll (I/O whose owners
                         # account for it) that is the poll the owners rely on - while physics
                         # runs flat out, a clock server reads and writes in its keepalives'.
                         self._poll_io(0)
@@ -619,11 +619,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _outside_quiet(self) -> bool:
         """OUTSIDE HOOK: nothing outside the loop holds sim time or could matter before it
-        moves but I/O whose owners account for it exactly (``account_fd``: a clock
+        moves but I/O whose owners account for it exactly (``_account_fd``: a clock
         server's listener and connections; it holds sim time itself while a participant
         works): no other fd, no signal handler, no outside work, no other thread. Then
-        nothing is in flight (the survey of :meth:`held_horizon` would find nothing) and
-        no poll need come before time moves (:meth:`before_moving`): the owners read their
+        nothing is in flight (the survey of :meth:`_held_horizon` would find nothing) and
+        no poll need come before time moves (:meth:`_before_moving`): the owners read their
         fds between callbacks, and hold time while what they read matters."""
         io_map = self._io_map
         accounted = self._accounted_fds
@@ -634,7 +634,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             and only_internal_threads()
         )
 
-    def wait_for_source(self) -> bool:
+    def _wait_for_source(self) -> bool:
         """EXTERNAL-SOURCE HOOK: the loop's wait for its external source, taken by the source
         inside :meth:`~evclock.kernel.TimeSource.advance` so that the news it waits for (a
         clock server's grant) is read and used in the same call.
@@ -673,7 +673,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             return self._io_map.values()
         return [key for key in self._io_map.values() if key.fd not in accounted]
 
-    def account_fd(self, fd: int, accounted: bool) -> None:
+    def _account_fd(self, fd: int, accounted: bool) -> None:
         """Declare that ``fd``'s owner accounts for its traffic exactly (``accounted``), or
         no longer does: the owner holds sim time itself while that traffic matters (the
         clock server's connections), so the loop infers nothing from the fd's unread bytes.
@@ -686,18 +686,18 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     # ------------------------------------------------ what the kernel asks the loop
 
-    def anything_runnable(self) -> bool:
+    def _anything_runnable(self) -> bool:
         """Whether a callback is ready to run (the kernel does not advance then)."""
         return bool(self._ready)
 
-    def held_horizon(self, paused: bool) -> int | None:
+    def _held_horizon(self, paused: bool) -> int | None:
         """What work outside the loop holds of sim time (holds, executor jobs, awaited
         child processes, bytes in flight, busy threads: :mod:`evclock.outside`): None,
         nothing; else how far sim time may still move (threads held only in timed waits of
         known length: up to the first of their ends; 0 otherwise). The kernel decides."""
         if (self._source_external and self._source_alone()) or self._outside_quiet():
             self._holder = None  # nothing outside but the source, or accounted I/O
-            self._outside_silent = True  # for before_moving, which the kernel asks next
+            self._outside_silent = True  # for _before_moving, which the kernel asks next
             return None
         self._outside_silent = False
         outside = self._outside
@@ -707,12 +707,12 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         horizon = outside.horizon_ns
         return 0 if horizon is None else horizon
 
-    def before_moving(self) -> None:
+    def _before_moving(self) -> None:
         """Sim time may move: bytes that arrived since the last poll (a peer thread's reply,
         just delivered while the thread went back to waiting; a signal's byte on the
         self-pipe as an alarm hold ends) are taken in first; the kernel finds their callbacks
         ready and does not advance. So this polls even when no callback ran since the last
-        poll. Not when :meth:`held_horizon`, asked just before in the same advance, found
+        poll. Not when :meth:`_held_horizon`, asked just before in the same advance, found
         nothing outside but the source's connection or I/O whose owners account for it."""
         if not self._outside_silent and len(self._io_map) > self._quiet_fds:
             if self._epoll:
@@ -727,7 +727,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         are polled once before time moves: exact, and what was written is read now.
 
         Only descriptors that can be a terminal are polled: not the self-pipe, nor the
-        sockets whose owner accounts for their traffic exactly (``account_fd``: a clock
+        sockets whose owner accounts for their traffic exactly (``_account_fd``: a clock
         server's connections and listener); with none left, no system call at all.
 
         This runs before every advance with I/O registered, so the poll object is kept and
@@ -747,7 +747,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         if self._tty_poller is not None:
             self._tty_poller.poll(0)
 
-    def could_wake(self) -> bool:
+    def _could_wake(self) -> bool:
         """Could anything outside wake a task with nothing scheduled? (I/O, signal
         handlers, children, executor jobs, holds, threads: evclock/_outside.py)
 
@@ -757,7 +757,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         outside = self._outside  # OUTSIDE HOOK
         return outside.can_wake() or self._poll_io(_DEADLOCK_CONFIRM) or outside.can_wake()
 
-    def would_deadlock(self) -> bool:
+    def _would_deadlock(self) -> bool:
         """Whether, right now, nothing could ever wake a task: nothing is ready, nothing
         outside the loop is in flight, no I/O or signal handler is registered, nothing is
         scheduled and the source cannot move on its own. A quick test without waiting (the
@@ -767,13 +767,21 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             return False
         return not self._source.free_running and not self._core.has_pending()
 
-    def interrupt_wait(self) -> None:
+    def _interrupt_wait(self) -> None:
         """Nothing to do: the loop's waits are I/O waits, and whatever calls this runs in
         the loop (so the wait is over) or comes through the self-pipe (which ends it)."""
 
-    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+    def _serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` are on this sim time (only this loop's)."""
         return loop is self
+
+    def _is_closed(self) -> bool:
+        """Whether the loop is closed (asyncio's :meth:`is_closed`)."""
+        return self._closed
+
+    def _call_exception_handler(self, context: dict[str, Any]) -> None:
+        """asyncio's :meth:`call_exception_handler`."""
+        self.call_exception_handler(context)
 
     def _poll_io(self, timeout: float | None) -> bool:
         """Wait up to ``timeout`` wall seconds for I/O; True if something became ready."""
@@ -836,7 +844,7 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
 
     def _wait_for_io(self) -> None:
         if self._ready:
-            return  # could_wake() polled, and something arrived
+            return  # _could_wake() polled, and something arrived
         held = self._held_for()
         limit = self._stall_timeout
         if limit is not None and held > limit:
@@ -900,18 +908,18 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
         with self.hold_time():
             await super().shutdown_default_executor(*args, **kwargs)
 
-    def add_hold(self) -> None:
-        """Hold sim time until a matching :meth:`release_hold` (thread-safe; counted, so
+    def _add_hold(self) -> None:
+        """Hold sim time until a matching :meth:`_release_hold` (thread-safe; counted, so
         holds nest). :meth:`hold_time` is the block form; the clock server holds this way
         while a participant's answer is in flight."""
         self._outside.add_hold()
 
-    def release_hold(self, _fut: object = None) -> None:
-        """Release one :meth:`add_hold` (thread-safe). It takes an ignored argument so that
+    def _release_hold(self, _fut: object = None) -> None:
+        """Release one :meth:`_add_hold` (thread-safe). It takes an ignored argument so that
         it can be a future's done-callback."""
         self._outside.release_hold()
 
-    def restart_stall_bound(self) -> None:
+    def _restart_stall_bound(self) -> None:
         """Start the ``stall_timeout`` bound again: the hold in force is bounded by its
         owner, not by the loop. A holder with a timeout of its own (the clock server
         waiting for participants under its join, step and ``pause`` policies) calls this
@@ -929,11 +937,11 @@ class SimEventLoop(PacingControls, asyncio.SelectorEventLoop):
             with loop.hold_time():
                 await wait_for_reply_from_subprocess()
         """
-        self.add_hold()
+        self._add_hold()
         try:
             yield
         finally:
-            self.release_hold()
+            self._release_hold()
 
     def _pacing_changed(self) -> None:
         self._core.pacing_changed()

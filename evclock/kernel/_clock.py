@@ -102,6 +102,13 @@ class Clock(abc.ABC):
         self._timers[timer.name] = timer
         return timer
 
+    def _forget_loops(self) -> None:
+        """Forget every rate loop and timer made so far (a scenario reset in place on the same
+        loop: :attr:`rates` and :attr:`timers` then list the new episode's only, as in a new
+        run)."""
+        self._rates.clear()
+        self._timers.clear()
+
     @property
     def rates(self) -> tuple[Rate, ...]:
         """The latest rate loop of each name created on this clock, oldest first (for reports).

@@ -137,7 +137,7 @@ def clock_sleep(clock: SimClock, duration: float | Duration) -> asyncio.Future[N
     else:
         core.schedule(when, fut)
     if when < core.notify_before:
-        core.host.interrupt_wait()
+        core.host._interrupt_wait()
     return fut
 
 
@@ -161,18 +161,22 @@ def clock_sleep_until(clock: SimClock, when_ns: int) -> asyncio.Future[None]:
     else:
         core.schedule(when_ns, fut)
     if when_ns < core.notify_before:
-        core.host.interrupt_wait()
+        core.host._interrupt_wait()
     return fut
 
 
 class CoreHost(Protocol):
-    """What the kernel asks of the host it runs in (a SimEventLoop or a SimDriver)."""
+    """What the kernel asks of the host it runs in (a SimEventLoop or a SimDriver).
 
-    def anything_runnable(self) -> bool:
+    Private names, as asyncio's own loop hooks (``_timer_handle_cancelled``,
+    ``_write_to_self``): the kernel calls them, a user never does, so they stay off the
+    hosts' public face (tests/hosts/test_host_surface.py holds it to a list)."""
+
+    def _anything_runnable(self) -> bool:
         """Is anything else runnable at the current time (a task, a callback)?"""
         ...
 
-    def held_horizon(self, paused: bool) -> int | None:
+    def _held_horizon(self, paused: bool) -> int | None:
         """What work outside the host (executor jobs, holds, children, busy threads) holds
         of sim time: None, nothing; otherwise how many nanoseconds sim time may still move
         before the hold applies - 0 for none at all; a thread's timed wait of known length
@@ -183,28 +187,32 @@ class CoreHost(Protocol):
         hold. Running threads, executor jobs, children and explicit holds still do."""
         ...
 
-    def before_moving(self) -> None:
+    def _before_moving(self) -> None:
         """Sim time is about to move: take in what arrived from outside meanwhile (poll
         I/O), so that work it makes ready runs at the current time first."""
         ...
 
-    def could_wake(self) -> bool:
+    def _could_wake(self) -> bool:
         """Could anything outside wake a task (registered I/O, signal handlers, threads,
         peers)? False with nothing scheduled is a deadlock."""
         ...
 
-    def interrupt_wait(self) -> None:
+    def _interrupt_wait(self) -> None:
         """End the host's current wait now: a deadline before :attr:`SimCore.notify_before`
         was scheduled, time jumped, or an external source received news."""
         ...
 
-    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+    def _serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` wait on this host's sim time."""
         ...
 
-    def is_closed(self) -> bool: ...
+    def _is_closed(self) -> bool:
+        """True once the host closed (a source then moves its time without a jump)."""
+        ...
 
-    def call_exception_handler(self, context: dict[str, Any]) -> None: ...
+    def _call_exception_handler(self, context: dict[str, Any]) -> None:
+        """Report an error from a wake-up callback or a source to the host's loop."""
+        ...
 
     @property
     def clock(self) -> SimClock: ...
@@ -276,7 +284,7 @@ class SimCore:
         self.pacer = Pacer(self._read_now, rtf=rtf, strict=strict, max_lag=max_lag, wall=wall)
         #: After PACING: wall seconds to wait before asking again (None: until a control changes).
         self.pacing_delay: float | None = None
-        #: The host is told (:meth:`CoreHost.interrupt_wait`) of deadlines before this.
+        #: The host is told (:meth:`CoreHost._interrupt_wait`) of deadlines before this.
         self.notify_before: int = -1
         self.jump_handlers: list[JumpHandle] = []
         #: The schedule (see the module): ``heap`` holds each distinct deadline once, ``at``
@@ -297,7 +305,7 @@ class SimCore:
         #: Or, faster, the loop a plain future is created on when waits are possible there
         #: with no further check (an open SimEventLoop); None: use ``future_factory``.
         self.future_loop: asyncio.AbstractEventLoop | None = None
-        self._anything_runnable = host.anything_runnable
+        self._anything_runnable = host._anything_runnable
         # The default source moves exactly to any later target it is given: the hot path
         # (wake_next) moves it itself instead of calling its advance() (exact type only: a
         # subclass may override advance()).
@@ -340,7 +348,7 @@ class SimCore:
         """Make time stop exactly at ``when_ns`` on its way (step_until, run_until)."""
         self.schedule(when_ns, _STOP)
         if when_ns < self.notify_before:
-            self.host.interrupt_wait()
+            self.host._interrupt_wait()
 
     def drop_stops(self) -> None:
         """Remove every stop mark still ahead: the ``step_until`` that placed it ended
@@ -359,7 +367,7 @@ class SimCore:
         fut = self.future_factory()
         heapq.heappush(self._settled, (when_ns, self._seq(), fut))
         if when_ns < self.notify_before:
-            self.host.interrupt_wait()
+            self.host._interrupt_wait()
         return fut
 
     def next_deadline(self) -> int | None:
@@ -532,7 +540,7 @@ class SimCore:
                 self._report_wakeup_error(exc)
 
     def _report_wakeup_error(self, exc: BaseException) -> None:
-        self.host.call_exception_handler(
+        self.host._call_exception_handler(
             {"message": "Exception in a wake-up callback of a sim-time wait", "exception": exc}
         )
 
@@ -590,15 +598,15 @@ class SimCore:
             # the host waits as paused (unbounded), not as held (bounded by stall_timeout).
             self.pacing_delay = None
             return PACING
-        horizon = host.held_horizon(pacer.paused)
+        horizon = host._held_horizon(pacer.paused)
         if horizon is not None and (target is None or target - self.now_ns > horizon):
             return HELD  # (a hold with a horizon lets earlier deadlines fire first)
-        host.before_moving()
+        host._before_moving()
         if self._anything_runnable():
             return DUE  # a thread handed work over (and ended) while the host looked
         source = self.source
         if target is None and not source.free_running:
-            return WAIT_IO if host.could_wake() else DEADLOCK
+            return WAIT_IO if host._could_wake() else DEADLOCK
         gate = None if pacer.unpaced else pacer.allow
         before = self.now_ns
         now = self.now_ns = source.advance(target, gate)
@@ -739,7 +747,7 @@ class SimCore:
     def time_arrived(self) -> None:
         """An external source received news from outside (call it from the reader callback):
         the host asks the source to advance again at once instead of at its next poll."""
-        self.host.interrupt_wait()
+        self.host._interrupt_wait()
 
     def work_ready(self) -> bool:
         """Whether a task became runnable (a stepping source stops stepping then)."""
@@ -747,15 +755,15 @@ class SimCore:
 
     def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         """Whether tasks of ``loop`` wait on this sim time."""
-        return self.host.serves(loop)
+        return self.host._serves(loop)
 
     def is_closed(self) -> bool:
         """True once the host closed (a source then moves its time without a jump)."""
-        return self.host.is_closed()
+        return self.host._is_closed()
 
     def call_exception_handler(self, context: dict[str, Any]) -> None:
         """Report an error from a source (a failing step hook) to the host."""
-        self.host.call_exception_handler(context)
+        self.host._call_exception_handler(context)
 
     def jump(self, before_ns: int, after_ns: int, assign: Callable[[int], None]) -> TimeJump:
         """Move sim time discontinuously (a reset, a restored snapshot, ``set_time``).
@@ -796,7 +804,7 @@ class SimCore:
         for fut in woken:
             fut.set_exception(ClockJumpedError(jump))
         self.pacer.reanchor()
-        self.host.interrupt_wait()
+        self.host._interrupt_wait()
         for handler in handlers:
             if handler.post is not None:
                 handler.post(jump)

@@ -96,7 +96,7 @@ class TimeSource(abc.ABC):
     #: source directly instead of polling first, and does not count the fd's unread bytes
     #: as work in flight: the source reads the fd itself in :meth:`advance` if it needs
     #: to, and answers for what travels on it. It may then also take the loop's own wait
-    #: for that fd inside :meth:`advance` (``SimEventLoop.wait_for_source()``: bounded,
+    #: for that fd inside :meth:`advance` (``SimEventLoop._wait_for_source()``: bounded,
     #: and ended by anything that wakes the loop), and use what it reads at once: the
     #: clock server's participant waits for its grant this way.
     io_fd: int | None = None

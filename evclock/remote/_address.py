@@ -84,6 +84,12 @@ class Address:
             return False
 
 
+ONE_VERIFICATION = (
+    "a tls:// server is verified one way: give tls_ca (the CA that signed its certificate) "
+    "or tls_fingerprint (its certificate's fingerprint), not both"
+)
+
+
 def _positive_seconds(raw: str, what: str) -> float:
     try:
         value = float(raw)
@@ -148,6 +154,8 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
     tls_ca = options.get("tls_ca")
     if tls_ca is not None and not tls_ca:
         raise InvalidArgumentError(f"tls_ca must name a CA file in clock address {url!r}")
+    if len(tls_keys) == 2:
+        raise InvalidArgumentError(f"{ONE_VERIFICATION}, in clock address {url!r}")
     fingerprint = options.get("tls_fingerprint")
     common = {
         "mode": mode,
@@ -182,26 +190,26 @@ def parse_address(url: object, *, participant: bool = True) -> Address:
 
 
 def with_verification(address: Address, tls_ca: str | None, tls_fingerprint: str | None) -> Address:
-    """``address`` with the CA file or the fingerprint that verify its ``tls://`` server
-    (given to the participant besides its address; they override the query's)."""
+    """``address`` with the CA file or the fingerprint that verifies its ``tls://`` server
+    (given to the participant besides its address: it replaces the query's way)."""
     if tls_ca is None and tls_fingerprint is None:
         return address
     if address.scheme != "tls":
         raise InvalidArgumentError(
             f"tls_ca and tls_fingerprint verify a tls:// server, not {address}"
         )
+    if tls_ca is not None and tls_fingerprint is not None:
+        raise InvalidArgumentError(ONE_VERIFICATION)
     if tls_ca is not None:
         if not isinstance(tls_ca, str):
             raise InvalidTypeError(f"tls_ca is a file path, got {type(tls_ca).__name__}")
-        address = dataclasses.replace(address, tls_ca=tls_ca)
-    if tls_fingerprint is not None:
-        if not isinstance(tls_fingerprint, str):
-            raise InvalidTypeError(
-                f"tls_fingerprint is a hex string, got {type(tls_fingerprint).__name__}"
-            )
-        fingerprint = _tls.parse_fingerprint(tls_fingerprint)
-        address = dataclasses.replace(address, tls_fingerprint=fingerprint)
-    return address
+        return dataclasses.replace(address, tls_ca=tls_ca, tls_fingerprint=None)
+    if not isinstance(tls_fingerprint, str):
+        raise InvalidTypeError(
+            f"tls_fingerprint is a hex string, got {type(tls_fingerprint).__name__}"
+        )
+    fingerprint = _tls.parse_fingerprint(tls_fingerprint)
+    return dataclasses.replace(address, tls_ca=None, tls_fingerprint=fingerprint)
 
 
 def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
@@ -209,9 +217,20 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
 
     A Unix socket file is created with owner-only permissions (0600); an existing socket
     file at the path is an error rather than silently replaced. TCP and TLS bind to a
-    loopback address unless ``allow_remote``, which only TLS may use (a token is required
+    loopback address unless ``allow_remote``, which only TLS takes (a token is required
     on both, checked by the caller): plain TCP is for one machine.
     """
+    if allow_remote and address.scheme != "tls":
+        raise InvalidArgumentError(
+            f"allow_remote=True is for tls:// addresses, not {address}: "
+            + (
+                "a unix:// socket is reached from this machine only; drop allow_remote"
+                if address.scheme == "unix"
+                else "plain tcp:// stays on this machine (unencrypted, and any host could "
+                "pose as the server); serve across machines on tls://HOST:PORT with a "
+                "certificate (tls_cert=, tls_key=) and a token"
+            )
+        )
     if address.scheme == "unix":
         if os.path.lexists(address.path):
             raise InvalidArgumentError(
@@ -228,17 +247,17 @@ def listen(address: Address, *, allow_remote: bool = False) -> socket.socket:
         finally:
             os.umask(old_umask)
     else:
-        if not address.is_loopback and not allow_remote:
-            raise InvalidArgumentError(
-                f"{address} is not a loopback address; a clock server binds to 127.0.0.1 "
-                "unless told otherwise (allow_remote=True, on tls:// with a token)"
-            )
         if not address.is_loopback and address.scheme != "tls":
             raise InvalidArgumentError(
                 f"{address} is not a loopback address, and plain tcp:// would carry the "
                 "simulation's time and data unencrypted to anyone on the path and let any "
                 "host pose as the server: serve across machines on tls://HOST:PORT with a "
                 "certificate (tls_cert=, tls_key=) and a token"
+            )
+        if not address.is_loopback and not allow_remote:
+            raise InvalidArgumentError(
+                f"{address} is not a loopback address; a clock server binds to 127.0.0.1 "
+                "unless told otherwise (allow_remote=True, on tls:// with a token)"
             )
         family = socket.AF_INET6 if ":" in address.host else socket.AF_INET
         sock = socket.socket(family, socket.SOCK_STREAM)

@@ -133,7 +133,7 @@ class Admission(ServerCore):
             # The server holds sim time exactly while a peer's traffic matters (a working
             # participant): the loop must not also infer held time from its unread bytes
             # (a follower that reads late must never hold the simulation).
-            self._loop.account_fd(sock.fileno(), True)
+            self._loop._account_fd(sock.fileno(), True)
 
     def _tls_handshake(self, peer: Peer) -> bool:
         """The server's side of a TLS handshake, as far as the bytes allow (never blocks):
@@ -158,6 +158,7 @@ class Admission(ServerCore):
                     peer,
                     f"this clock server speaks TLS: join it with {self._address} (and "
                     "?tls_ca= or ?tls_fingerprint= to verify it), not plain tcp://",
+                    proto.REFUSE_TLS,
                 )
                 return False
             self._loop.remove_reader(sock)

@@ -169,7 +169,7 @@ class ServerCore:
     def _disconnect(self, peer: Peer) -> None:
         self._unschedule(peer)
         if peer.sock.fileno() >= 0:
-            self._loop.account_fd(peer.sock.fileno(), False)
+            self._loop._account_fd(peer.sock.fileno(), False)
             if not self._loop.is_closed():
                 self._loop.remove_reader(peer.sock)
                 self._loop.remove_writer(peer.sock)

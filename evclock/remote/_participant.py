@@ -14,6 +14,7 @@ pending sleeps raise ``ClockJumpedError``, asyncio timers keep their remaining d
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import hmac
 import itertools
 import json
@@ -303,6 +304,13 @@ class RemoteClockSource(TimeSource):
             code, reason = proto.parse_refuse(payload)
             if code == proto.REFUSE_BUSY:
                 return None
+            if code == proto.REFUSE_TLS and addr.scheme == "tcp":
+                tls = dataclasses.replace(addr, scheme="tls")
+                raise JoinRefusedError(
+                    f"the clock server at {addr} serves TLS only: join it with {tls}, verified "
+                    "with tls_ca or tls_fingerprint (evclock control: --tls-ca or "
+                    "--tls-fingerprint); nothing but the HELLO was sent to it"
+                )
             what = f"a REFUSE (saying {shown(reason)})"
         elif kind == proto.WELCOME:
             what = "a WELCOME"
@@ -416,7 +424,7 @@ class RemoteClockSource(TimeSource):
                 self._waiting_since = time.monotonic()
                 # The round's fast path: with nothing else outside the loop, wait for the
                 # grant here and use it at once (the loop would wait for this fd next).
-                if self._granted is None and not self._writing and self._loop.wait_for_source():
+                if self._granted is None and not self._writing and self._loop._wait_for_source():
                     self._on_readable()
                     if self._lost is not None:
                         raise self._lost
@@ -630,7 +638,7 @@ class RemoteClockSource(TimeSource):
     def _on_readable(self) -> None:
         try:
             # On TLS this also takes what the SSL object decrypted already: nothing is left
-            # where the loop's poll of the socket (wait_for_source, add_reader) cannot see it.
+            # where the loop's poll of the socket (_wait_for_source, add_reader) cannot see it.
             data = _tls.recv(self._sock, 262144)
         except _tls.WOULD_BLOCK:
             return

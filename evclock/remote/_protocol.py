@@ -75,9 +75,11 @@ JUMPED: Final = ord("K")  # participant -> server: jump number (applied; DONEs c
 MODE_LOCKSTEP: Final = 0
 MODE_FOLLOW: Final = 1
 NO_DEADLINE: Final = -1
-#: REFUSE codes: final (wrong token, name taken, version) or busy (try again shortly).
+#: REFUSE codes: final (wrong token, name taken, version), busy (try again shortly), or TLS
+#: (a plain connection reached a server that serves TLS only).
 REFUSE_FINAL: Final = 0
 REFUSE_BUSY: Final = 1
+REFUSE_TLS: Final = 2
 
 _HEADER = struct.Struct("<IB")
 _STAMP = struct.Struct("<IBq")  # GRANT, TIME

@@ -44,14 +44,14 @@ class Rounds(ServerCore):
     # ------------------------------------------------------------ holds
 
     def _hold(self) -> None:
-        # The loop's exact hold count (SimEventLoop.add_hold): sim time
+        # The loop's exact hold count (SimEventLoop._add_hold): sim time
         # stays put while a participant works, as for an executor job.
-        self._loop.add_hold()
+        self._loop._add_hold()
         self._holds += 1
 
     def _release(self) -> None:
         self._holds -= 1
-        self._loop.release_hold(None)
+        self._loop._release_hold(None)
 
     def _release_all_holds(self) -> None:
         while self._holds:
@@ -241,4 +241,4 @@ class Rounds(ServerCore):
 
     def _loop_bound_restarts(self) -> None:
         # The server's holds in force are bounded by the server: not a stall of the loop.
-        self._loop.restart_stall_bound()
+        self._loop._restart_stall_bound()

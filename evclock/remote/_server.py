@@ -197,7 +197,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
         # A listening socket carries no bytes in flight, nor is it a terminal: the server
         # accounts for it (the loop neither asks it for queued bytes nor polls it for tty
         # input before time moves).
-        loop.account_fd(self._listener.fileno(), True)
+        loop._account_fd(self._listener.fileno(), True)
         self._stop_watch = threading.Event()
         self._watchdog = threading.Thread(
             target=self._watch, name="evclock-clock-server-watchdog", daemon=True
@@ -294,7 +294,7 @@ class ClockServer(Admission, Rounds, Routing, Services):
         self._release_all_holds()
         self._remove_step_hook()
         self._jump_handle.remove()
-        self._loop.account_fd(self._listener.fileno(), False)
+        self._loop._account_fd(self._listener.fileno(), False)
         if not self._loop.is_closed():
             self._loop.remove_reader(self._listener)
         self._listener.close()

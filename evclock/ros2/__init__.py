@@ -22,7 +22,7 @@ Importing this module imports neither Zenoh nor Cyclone DDS; opening a publisher
 a subscription does.
 """
 
-from evclock._errors import Ros2MessageError
+from evclock._errors import Ros2MessageError, Ros2SubscribersError
 from evclock.ros2._publisher import Ros2ClockPublisher
 from evclock.ros2._rmw import ENV_RMW_IMPLEMENTATION, MIDDLEWARES, RMW_IMPLEMENTATIONS
 from evclock.ros2._session import DEFAULT_CONNECT, DEFAULT_LISTEN
@@ -51,6 +51,7 @@ from evclock.ros2._wire import (
 
 __all__ = [
     "Ros2MessageError",
+    "Ros2SubscribersError",
     "CLOCK_DDS_TYPE",
     "CLOCK_QOS",
     "CLOCK_TYPE",
@@ -82,3 +83,4 @@ __all__ = [
 ]
 
 Ros2MessageError.__module__ = __name__
+Ros2SubscribersError.__module__ = __name__

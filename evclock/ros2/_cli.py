@@ -14,7 +14,11 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 
 from evclock._errors import InvalidArgumentError
-from evclock.ros2._publisher import Ros2ClockPublisher
+from evclock.ros2._publisher import (
+    Ros2ClockPublisher,
+    check_subscriber_count,
+    check_wait_timeout,
+)
 from evclock.ros2._rmw import (
     ENV_RMW_IMPLEMENTATION,
     MIDDLEWARES,
@@ -28,10 +32,14 @@ from evclock.ros2._wire import (
 from evclock.ros2._wire import (
     ENV_ROS_DOMAIN_ID,
     WIRE_FORMATS,
+    check_frame_prefix,
     clock_key_expr,
     resolve_domain_id,
     wire_format,
 )
+
+DEFAULT_WAIT_TIMEOUT = 60.0
+"""Wall seconds ``--ros2-wait-for-subscribers`` waits at most (``--ros2-wait-timeout``)."""
 
 if TYPE_CHECKING:
     from evclock.sources import SteppingTimeSource
@@ -90,6 +98,29 @@ Ros2Listen = Annotated[
         help=f"Zenoh endpoint accepting peers, repeatable (default {DEFAULT_LISTEN[0]}).",
     ),
 ]
+Ros2FramePrefix = Annotated[
+    str,
+    typer.Option(
+        "--ros2-frame-prefix",
+        help="With --ros2: prepended to every TF frame (the URDF's link names), as "
+        "robot_state_publisher's frame_prefix, e.g. robot1/ (world is never prefixed).",
+    ),
+]
+Ros2WaitForSubscribers = Annotated[
+    int | None,
+    typer.Option(
+        "--ros2-wait-for-subscribers",
+        help="Hold sim time at its start, publishing it as /clock, until N /clock "
+        "subscriptions matched (DDS).",
+    ),
+]
+Ros2WaitTimeout = Annotated[
+    float,
+    typer.Option(
+        "--ros2-wait-timeout",
+        help="Wall seconds --ros2-wait-for-subscribers waits at most before failing.",
+    ),
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -103,6 +134,9 @@ class Ros2ClockOptions:
     listen: tuple[str, ...] | None
     middleware: Middleware = "dds"
     robot_state: bool = False
+    frame_prefix: str = ""
+    wait_for_subscribers: int | None = None
+    wait_timeout: float = DEFAULT_WAIT_TIMEOUT
 
     @property
     def key_expr(self) -> str:
@@ -142,9 +176,18 @@ def options_from_cli(
     listen: list[str] | None,
     rmw: str | None = None,
     robot_state: bool = False,
+    frame_prefix: str = "",
+    wait_for_subscribers: int | None = None,
+    wait_timeout: float = DEFAULT_WAIT_TIMEOUT,
 ) -> Ros2ClockOptions | None:
     """Validate the options; None when ``--ros2-clock`` and ``--ros2`` are off (then the others
     are errors). ``--ros2`` is ``--ros2-clock`` and the robot state."""
+    if frame_prefix and not robot_state:
+        raise InvalidArgumentError(
+            "--ros2-frame-prefix names the robot's TF frames: only with --ros2"
+        )
+    if wait_timeout != DEFAULT_WAIT_TIMEOUT and wait_for_subscribers is None:
+        raise InvalidArgumentError("--ros2-wait-timeout: only with --ros2-wait-for-subscribers")
     enabled = enabled or robot_state
     if not enabled:
         given = [
@@ -156,6 +199,7 @@ def options_from_cli(
                 ("--ros2-connect", connect, None),
                 ("--ros2-listen", listen, None),
                 ("--rmw", rmw, None),
+                ("--ros2-wait-for-subscribers", wait_for_subscribers, None),
             )
             if value != default
         ]
@@ -166,7 +210,15 @@ def options_from_cli(
         raise InvalidArgumentError(
             f"--ros2-clock-decimation must be >= 1 (1 = every step), got {decimation}"
         )
+    if wait_for_subscribers is not None:
+        check_subscriber_count(wait_for_subscribers, "--ros2-wait-for-subscribers")
+        check_wait_timeout(wait_timeout, "--ros2-wait-timeout")
     middleware = resolve_middleware(rmw)
+    if wait_for_subscribers is not None and middleware != "dds":
+        raise InvalidArgumentError(
+            "--ros2-wait-for-subscribers counts DDS readers of /clock; the middleware is "
+            "Zenoh: drop it, or --rmw dds"
+        )
     if middleware == "dds":
         if connect is not None or listen is not None:
             raise InvalidArgumentError(
@@ -181,6 +233,9 @@ def options_from_cli(
             listen=None,
             middleware="dds",
             robot_state=robot_state,
+            frame_prefix=check_frame_prefix(frame_prefix),
+            wait_for_subscribers=wait_for_subscribers,
+            wait_timeout=wait_timeout,
         )
     return Ros2ClockOptions(
         domain_id=resolve_domain_id(domain_id),

@@ -59,6 +59,7 @@ Fields: ``reliability:durability:history,depth:deadline s,ns:lifespan s,ns:livel
 s,ns``."""
 
 _NAME_SEGMENT = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_FRAME_PREFIX = re.compile(r"(?:[A-Za-z0-9_]+/)*[A-Za-z0-9_]*")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -381,3 +382,17 @@ def check_node_name(name: object) -> str:
             f"invalid ROS node name {name!r}: letters, digits and '_', not starting with a digit"
         )
     return name
+
+
+def check_frame_prefix(prefix: object) -> str:
+    """A TF frame prefix as robot_state_publisher's ``frame_prefix`` takes it (prepended to
+    each link name as is, e.g. ``robot1/``): letters, digits, ``_`` and ``/`` (not first and
+    never doubled: tf2 refuses frame ids that start with ``/``), or empty for none."""
+    if not isinstance(prefix, str):
+        raise InvalidTypeError(f"frame_prefix must be a str, got {type(prefix).__name__}")
+    if not _FRAME_PREFIX.fullmatch(prefix):
+        raise InvalidArgumentError(
+            f"invalid frame prefix {prefix[:80]!r}: letters, digits, '_' and '/' (not first, "
+            "not doubled), e.g. 'robot1/'"
+        )
+    return prefix

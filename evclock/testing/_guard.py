@@ -93,7 +93,7 @@ class CallGuard:
 
 def _would_deadlock(loop: asyncio.AbstractEventLoop) -> bool:
     """Whether a simulation loop has nothing left that could ever wake a task."""
-    return isinstance(loop, SimEventLoop) and loop.would_deadlock()
+    return isinstance(loop, SimEventLoop) and loop._would_deadlock()
 
 
 # The names ``evclock_test`` and ``_run_guarded`` are hidden from task descriptions

@@ -12,6 +12,7 @@ Optional dependencies (PyBullet, mcap, matplotlib, Ray) are imported where they 
 from evclock._errors import ScenarioError, TraceError
 from evclock.tools._plot import plot_run, plot_sweep
 from evclock.tools._record import record
+from evclock.tools._ros2_state import ros2_robot_state
 from evclock.tools._runs import LoopReport, RunReport, run_scenario
 from evclock.tools._scenarios import ENTRY_POINT_GROUP, load_scenario, parameters
 from evclock.tools._sweep import RunSpec, SweepResult, SweepRow, plan, sweep
@@ -37,6 +38,7 @@ __all__ = [
     "plot_sweep",
     "read_trace",
     "record",
+    "ros2_robot_state",
     "run_scenario",
     "sweep",
 ]

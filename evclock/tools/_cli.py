@@ -18,6 +18,7 @@ import json
 import sys
 import textwrap
 import traceback
+import urllib.parse
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -323,6 +324,9 @@ def run_command(
     ros2_listen: ros2_cli.Ros2Listen = None,
     rmw: ros2_cli.Rmw = None,
     ros2: ros2_cli.Ros2Flag = False,
+    ros2_frame_prefix: ros2_cli.Ros2FramePrefix = "",
+    ros2_wait_for_subscribers: ros2_cli.Ros2WaitForSubscribers = None,
+    ros2_wait_timeout: ros2_cli.Ros2WaitTimeout = ros2_cli.DEFAULT_WAIT_TIMEOUT,
 ) -> None:
     """Run a scenario with its controllers on evclock time.
 
@@ -347,6 +351,9 @@ def run_command(
             ros2_listen,
             rmw,
             ros2,
+            ros2_frame_prefix,
+            ros2_wait_for_subscribers,
+            ros2_wait_timeout,
         )
         if ros2_options is not None:
             if serve is not None:
@@ -374,6 +381,18 @@ def run_command(
         if (tls_cert is not None or tls_key is not None or allow_remote) and serve is None:
             raise InvalidArgumentError(
                 "--tls-cert, --tls-key and --allow-remote need --serve tls://HOST:PORT"
+            )
+        served_scheme = None if serve is None else urllib.parse.urlsplit(serve).scheme
+        if allow_remote and served_scheme in ("tcp", "unix"):
+            raise InvalidArgumentError(
+                f"--allow-remote is for --serve tls://HOST:PORT, not {served_scheme}://: "
+                + (
+                    "a unix:// socket is reached from this machine only; drop --allow-remote"
+                    if served_scheme == "unix"
+                    else "plain tcp:// stays on this machine (unencrypted, and any host could "
+                    "pose as the server); serve across machines on tls://HOST:PORT with "
+                    "--tls-cert and --tls-key"
+                )
             )
         if serve is not None and values:
             raise InvalidArgumentError(

@@ -173,15 +173,17 @@ def serve_scenario(
     opened, scenario = open_world(cls, seed, engine=engine, gui=gui)
     source: Any = opened  # PyBullet's or MuJoCo's: a stepping source either way
     install_step_hooks(scenario, source)  # the world's per-step hooks run with the physics
-    from evclock.tools._record import open_recorder  # --record/--foxglove: the simulation's
+    from evclock.tools._record import open_recorder, world_of  # --record/--foxglove: the sim's
 
-    recorder = open_recorder(record, cls, seed, {}, limit)
+    recorder = open_recorder(record, cls, seed, {}, limit, world=world_of(source))
     info = {
         "scenario": cls.name,
         "seed": seed,
         "engine": engine,
         "until": limit,
         "remote_controllers": remote_controllers,
+        # exact, so the controllers' loop reports know their deadlines' quantisation
+        "physics_step_ns": [source.time_step_ns.numerator, source.time_step_ns.denominator],
     }
     handed: dict[str, Any] = {}
 
@@ -316,18 +318,27 @@ def _checked_report(data: bytes) -> dict[str, Any]:
 
 def _loops_from(data: list[dict[str, Any]], step_ns: Fraction) -> list[Any]:
     """The controllers' loop reports, each checked against this simulation's physics step."""
-    from evclock.kernel._rate import _period_fraction
-    from evclock.tools._runs import LoopReport
+    from evclock.tools._runs import loop_report
 
-    return [
-        LoopReport(
-            d["name"],
-            d["hz"],
-            d["stats"],
-            (_period_fraction(d["hz"]) / step_ns).denominator == 1,
+    return [loop_report(d["name"], d["hz"], d["stats"], step_ns) for d in data]
+
+
+def _served_step_ns(info: dict[str, Any], address: str) -> Fraction | None:
+    """The physics step a simulation serves (``physics_step_ns``: numerator and denominator,
+    in ns), or None from a server that does not say (evclock 0.2)."""
+    served = info.get("physics_step_ns")
+    if served is None:
+        return None
+    if (
+        not isinstance(served, list)
+        or len(served) != 2
+        or not all(type(n) is int and n > 0 for n in served)
+    ):
+        raise InvalidArgumentError(
+            f"the simulation at {address} serves a malformed physics step {served!r}: "
+            "expected [numerator, denominator] in nanoseconds, two positive integers"
         )
-        for d in data
-    ]
+    return Fraction(served[0], served[1])
 
 
 def _joining(url: str, name: str, token: str | None) -> str:
@@ -388,10 +399,26 @@ def control_scenario(
             "controllers in lockstep"
         )
     verify = {"tls_ca": tls_ca, "tls_fingerprint": tls_fingerprint}
-    if any(value is not None for value in verify.values()):
-        given = {key: value for key, value in verify.items() if value is not None}
+    given = {key: value for key, value in verify.items() if value is not None}
+    if len(given) == 2:
+        raise InvalidArgumentError(
+            "--tls-ca and --tls-fingerprint are two ways to verify the simulation: give one "
+            "(--tls-ca for a certificate your CA signed, --tls-fingerprint for a self-signed one)"
+        )
+    if given and scheme != "tls":
+        raise InvalidArgumentError(
+            f"--tls-ca and --tls-fingerprint verify a simulation served on tls://, not "
+            f"{scheme}://: drop the option, or join it with --clock tls://HOST:PORT"
+        )
+    if given:
         clock_url = f"{clock_url}{'&' if '?' in clock_url else '?'}{urllib.parse.urlencode(given)}"
     parsed = parse_address(clock_url)  # the address's own errors, before anything is built
+    if parsed.scheme == "tls" and parsed.tls_ca is None and parsed.tls_fingerprint is None:
+        raise InvalidArgumentError(
+            f"joining the simulation at {parsed} needs a way to verify it: --tls-ca FILE (the "
+            "CA that signed its certificate) or --tls-fingerprint SHA256 (its certificate's "
+            "fingerprint)"
+        )
     if parsed.scheme in ("tcp", "tls") and token is None and parsed.token is None:
         raise InvalidArgumentError(
             f"joining the simulation at {parsed} over {parsed.scheme} needs its token: pass "
@@ -430,6 +457,7 @@ def control_scenario(
             scenario.world.data = RemoteMjData(link, scenario.world.data)
         else:
             scenario.pb = RemotePhysics(link)
+        step_ns = _served_step_ns(link.info, link.address)
         clk = clock()
         wall0 = time.perf_counter()
         outcome = _Outcome()
@@ -448,9 +476,10 @@ def control_scenario(
             wall_time_s=wall_s,
             achieved_rtf=None,
             summary=scenario.summary(),
-            loops=_loop_reports(clk),
+            loops=_loop_reports(clk, step_ns),
             final_state=json.loads(link.call(STATE_SERVICE)),
             until_s=limit,
+            physics_step_s=None if step_ns is None else float(step_ns / 1_000_000_000),
         )
         outcome.apply(report)
         link.publish(REPORT_TOPIC, json.dumps(report.to_json()).encode())

@@ -41,6 +41,8 @@ WORLD_FRAME = "world"
 """The fixed frame every link pose is given in."""
 LAYOUT_FILE = Path(__file__).with_name("foxglove_layout.json")
 """The saved Foxglove layout shipped with evclock (3D panel, joint plots, log, timing)."""
+SCENE_TOPIC = "/evclock/scene"
+"""The robot's shapes, written once: the live view sends them again to each subscriber."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -298,6 +300,7 @@ class _Link:
     body: int
     index: int  # -1: the base
     frame: str
+    name: str  # the URDF's link name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -353,10 +356,11 @@ class World:
             base, robot = (_text(x) for x in p.getBodyInfo(body, physicsClientId=cid))
             name = unique_name(robot or base or f"body{body}", taken)
             bodies[name] = body
-            self.links.append(_Link(body, -1, f"{name}/{base or 'base'}"))
+            self.links.append(_Link(body, -1, f"{name}/{base or 'base'}", base or "base"))
             for j in range(p.getNumJoints(body, physicsClientId=cid)):
                 info = p.getJointInfo(body, j, physicsClientId=cid)
-                self.links.append(_Link(body, j, f"{name}/{_text(info[12])}"))
+                link = _text(info[12])
+                self.links.append(_Link(body, j, f"{name}/{link}", link))
                 if info[2] != p.JOINT_FIXED:
                     joints.append(_Joint(body, j, _text(info[1])))
         self.bodies = bodies
@@ -383,6 +387,11 @@ class World:
     def joint_names(self) -> list[str]:
         """Every moving (non-fixed) joint's name, in body then joint order."""
         return [joint.name for joint in self.joints]
+
+    @property
+    def link_names(self) -> dict[str, str]:
+        """Each link frame (``<body>/<link>``) -> the link's name in its URDF."""
+        return {link.frame: link.name for link in self.links}
 
     def state(self) -> dict[str, Any]:
         """The full physical state by name: per body its base pose and velocities and each
@@ -594,6 +603,12 @@ class LiveView:
     :param parameters: values shown as parameters (read-only).
     :param until_ns: the run's sim-time limit (the playback range Foxglove shows), or None for
         a wall-time run, which cannot be paused: then no controls are offered.
+    :param channels: the channels known before the run (topic -> schema and metadata): they
+        exist before the server accepts a client, so every client learns them when it
+        connects. A channel created later is advertised to the clients connected then, and
+        foxglove-sdk (0.30) sends that advertisement before it accepts subscriptions to the
+        channel: a client that subscribes at once may be refused ("Unknown channel ID") and
+        Foxglove does not ask again.
     :raises MissingExtraError: ``foxglove-sdk`` is not installed (``evclock[record]``).
     :raises InvalidArgumentError: the address is malformed or cannot be listened on.
     """
@@ -605,6 +620,7 @@ class LiveView:
         parameters: Mapping[str, Any],
         *,
         until_ns: int | None = None,
+        channels: Mapping[str, tuple[Mapping[str, Any], Mapping[str, str]]] | None = None,
     ) -> None:
         from evclock._extras import import_extra
 
@@ -624,12 +640,13 @@ class LiveView:
         host, port = parse_address(address)
         self._context = foxglove.Context()
         self._channels: dict[str, Any] = {}
+        for topic, (schema_of_topic, metadata) in (channels or {}).items():
+            self.channel(topic, schema_of_topic, metadata)
         self._controls: Any = None  # the loop's pause/resume/step, once attached
         self._now_ns = 0  # the last time broadcast
         self._wake_read: socket.socket | None = None
         self._wake_write: socket.socket | None = None
-        self._lock = threading.Lock()
-        self._resend_scene = threading.Event()
+        self._scene: bytes | None = None  # the scene as sent, for later subscribers
         self._parameters = [
             Parameter(f"/scenario/{key}", value=_parameter_value(value))
             for key, value in parameters.items()
@@ -680,8 +697,8 @@ class LiveView:
                 return playback(request)
 
             def on_subscribe(self, client: Any, channel: Any) -> None:
-                if channel.topic == "/evclock/scene":
-                    view._resend_scene.set()
+                if channel.topic == SCENE_TOPIC:
+                    view._send_scene_again()
 
             def on_get_parameters(
                 self, client: Any, param_names: list[str], request_id: str | None = None
@@ -778,7 +795,17 @@ class LiveView:
         payload: bytes,
     ) -> None:
         """Send one JSON message, stamped ``time_ns`` (sim time)."""
+        if topic == SCENE_TOPIC:
+            self._scene = payload  # before it is sent: a subscriber gets it either way
         self.channel(topic, schema, metadata).log(payload, log_time=time_ns)
+
+    def _send_scene_again(self) -> None:
+        """Send the scene to a new subscriber (on the server's thread: a paused run takes
+        no samples), stamped with the last sim time broadcast; before the first scene was
+        sent, the subscriber gets that one. Live only: never into a recording."""
+        scene, channel = self._scene, self._channels.get(SCENE_TOPIC)
+        if scene is not None and channel is not None:
+            channel.log(scene, log_time=self._now_ns)
 
     def tick(self, time_ns: int) -> None:
         """Broadcast the current sim time (Foxglove's timeline follows it).
@@ -787,14 +814,6 @@ class LiveView:
         """
         self._now_ns = time_ns
         self.server.broadcast_time(time_ns)
-
-    def scene_wanted(self) -> bool:
-        """Whether a client subscribed to the scene since it was last sent (then it is sent
-        again: the scene is written once, a late client would miss it)."""
-        if self._resend_scene.is_set():
-            self._resend_scene.clear()
-            return True
-        return False
 
     def close(self) -> None:
         """Stop serving."""

@@ -200,6 +200,7 @@ def open_recorder(
     until_s: float,
     *,
     mode: str = "sim",
+    world: Any = None,
 ) -> Recorder | None:
     """The recorder of a run: to ``path`` and/or live (inside :func:`live_view`), or None.
 
@@ -209,6 +210,9 @@ def open_recorder(
     :param params: the parameters set.
     :param until_s: the sim-time limit.
     :param mode: ``"sim"`` or ``"wall"`` (the timeline of the recording).
+    :param world: the world to read (see :meth:`Recorder.attach`), built already: its
+        channels are served live from the start (a viewer connecting at any time is told
+        of the scene, and sent it when it subscribes).
     :returns: a :class:`Recorder`, or None when there is nothing to record to.
     :raises MissingExtraError: the record extra is not installed.
     """
@@ -216,6 +220,7 @@ def open_recorder(
     if path is None and address is None:
         return None
     metadata = {**run_metadata(cls, seed, params, until_s), "time": mode}
+    reader = None if world is None else world_reader(world)
     live: LiveView | None = None
     if address is not None:
         from evclock.tools._foxglove import LiveView
@@ -226,14 +231,39 @@ def open_recorder(
             f"evclock {cls.name}",
             {"seed": seed, **parameters(cls)},  # ``cls`` has ``params`` applied
             until_ns=round(until_s * 1e9) if mode == "sim" else None,
+            channels={
+                topic: (schema, _metadata(topic))
+                for topic, schema in _known_channels(reader is not None).items()
+            },
         )
         _announce(live)
     try:
-        return Recorder(path, metadata, live=live)
+        return Recorder(path, metadata, live=live, world=reader)
     except BaseException:
         if live is not None:
             live.close()
         raise
+
+
+def _metadata(topic: str) -> dict[str, str]:
+    return {"deterministic": "false" if topic in WALL_TIME_TOPICS else "true"}
+
+
+def _known_channels(world: bool) -> dict[str, Mapping[str, Any]]:
+    """The channels a run writes at its first sample whose schemas are known before it:
+    the clock's and, with a world read by name, its joints, transforms and scene."""
+    from evclock.tools._foxglove import (
+        FRAME_TRANSFORMS_SCHEMA,
+        JOINT_STATES_SCHEMA,
+        SCENE_UPDATE_SCHEMA,
+    )
+
+    known: dict[str, Mapping[str, Any]] = {"/evclock/clock": _CLOCK_SCHEMA}
+    if world:
+        known["/evclock/joints"] = JOINT_STATES_SCHEMA
+        known["/evclock/transforms"] = FRAME_TRANSFORMS_SCHEMA
+        known["/evclock/scene"] = SCENE_UPDATE_SCHEMA
+    return known
 
 
 def _announce(live: LiveView) -> None:
@@ -261,11 +291,17 @@ class Recorder:
     :param path: the MCAP file to write, or None (live view only).
     :param metadata: the ``evclock.run`` metadata (see :func:`run_metadata`).
     :param live: a :class:`~evclock.tools._foxglove.LiveView` to serve the channels on.
+    :param world: the reader of the world, when known before :meth:`attach`.
     :raises MissingExtraError: the mcap package is not installed.
     """
 
     def __init__(
-        self, path: Path | None, metadata: Mapping[str, Any], *, live: LiveView | None = None
+        self,
+        path: Path | None,
+        metadata: Mapping[str, Any],
+        *,
+        live: LiveView | None = None,
+        world: World | MuJoCoWorldReader | None = None,
     ) -> None:
         self.path = path
         self._live = live
@@ -285,9 +321,10 @@ class Recorder:
         self._sequence = 0
         self._clock: Clock | None = None
         self._state: Callable[[], list[float]] | None = None
-        self._world: World | MuJoCoWorldReader | None = None
+        self._world = world
         self._scene_sent = False
         self._log_handler: logging.Handler | None = None
+        self._hooks: list[Any] = []  # the step hook and jump handler attach() registered
         self._seen: dict[str, tuple[int, int]] = {}  # loop name -> (ticks, missed) recorded
         from evclock.kernel._rate import DeadlineGrid
 
@@ -299,8 +336,7 @@ class Recorder:
     def _channel(self, topic: str, schema: Mapping[str, Any]) -> _Channel:
         channel = self._channels.get(topic)
         if channel is None:
-            deterministic = "false" if topic in WALL_TIME_TOPICS else "true"
-            channel = _Channel(schema, {"deterministic": deterministic}, None)
+            channel = _Channel(schema, _metadata(topic), None)
             if self._writer is not None:
                 data = json.dumps(schema).encode()
                 key = data.decode()
@@ -326,15 +362,6 @@ class Recorder:
         if self._live is not None:
             self._live.log(topic, channel.schema, channel.metadata, time_ns, payload)
         self._sequence += 1
-
-    def _send_live(self, topic: str, schema: Mapping[str, Any], time_ns: int, data: object) -> None:
-        """Send a message to the live view only: the file (and its sequence numbers) stays
-        what an unwatched run writes."""
-        if self._closed or self._live is None:
-            return
-        channel = self._channel(topic, schema)
-        payload = json.dumps(data, allow_nan=True).encode()
-        self._live.log(topic, channel.schema, channel.metadata, time_ns, payload)
 
     def write_user(
         self, topic: str, message: Mapping[str, Any], message_type: type[Any] | None = None
@@ -388,21 +415,23 @@ class Recorder:
         :param state: the scenario's state vector (recorded when the world cannot be read
             by name).
         :param world: the world to read: a PyBullet client id, or anything with a MuJoCo
-            ``model`` and ``data`` (default: the source's client, or its model and data).
+            ``model`` and ``data`` (default: the one given to :func:`open_recorder`, else the
+            source's, see :func:`world_of`).
         :returns: the token of :func:`record`'s target.
         """
         from evclock.tools._foxglove import logging_handler
 
         self._clock = clk
         self._state = state
-        if world is None and source is not None:
-            world = getattr(source, "client", source)  # PyBullet's client, or MuJoCo's source
-        self._world = self._read_world(world)
+        if world is not None:
+            self._world = world_reader(world)
+        elif self._world is None and source is not None:
+            self._world = world_reader(world_of(source))
         self._samples.start(clk.now_ns())
         self._last_sample = (clk.now_ns(), time.perf_counter())
         if source is not None:
-            source.add_step_hook(self.observe, when="before")
-        clk.on_jump(post=self._jumped)
+            self._hooks.append(source.add_step_hook(self.observe, when="before"))
+        self._hooks.append(clk.on_jump(post=self._jumped))
         if self._live is not None and source is not None:  # a sim-time run: it can pause
             import asyncio
 
@@ -410,10 +439,6 @@ class Recorder:
         self._log_handler = logging_handler(self._logged)
         logging.getLogger().addHandler(self._log_handler)
         return _ACTIVE.set(self)
-
-    @staticmethod
-    def _read_world(world: Any) -> World | MuJoCoWorldReader | None:
-        return world_reader(world)
 
     def _logged(self, log: logging.LogRecord) -> None:
         from evclock.tools._foxglove import LOG_SCHEMA, log_message
@@ -504,12 +529,9 @@ class Recorder:
             self._write("/evclock/state", schema, now, state)
             self._write("/evclock/joints", JOINT_STATES_SCHEMA, now, world.joint_states(now))
             self._write("/evclock/transforms", FRAME_TRANSFORMS_SCHEMA, now, world.transforms(now))
-            resend = self._live is not None and self._live.scene_wanted()
-            if not self._scene_sent:
+            if not self._scene_sent:  # once: the live view sends it to later subscribers
                 self._scene_sent = True
                 self._write("/evclock/scene", SCENE_UPDATE_SCHEMA, now, world.scene(now))
-            elif resend:  # for a viewer that subscribed late: never into the file
-                self._send_live("/evclock/scene", SCENE_UPDATE_SCHEMA, now, world.scene(now))
         if self._live is not None:
             self._live.tick(now)
 
@@ -521,6 +543,9 @@ class Recorder:
         if self._closed:
             return
         try:
+            for hook in self._hooks:  # a closed recorder observes nothing more
+                hook.remove()
+            self._hooks.clear()
             if self._log_handler is not None:
                 logging.getLogger().removeHandler(self._log_handler)
             if self._writer is not None:
@@ -565,6 +590,12 @@ def foxglove_option(
     parse_address(address)
     import_extra("foxglove", "record", needed_by="evclock run --foxglove")
     return live_view(address), 1.0 if rtf is None else rtf
+
+
+def world_of(source: Any) -> Any:
+    """The world a stepping source steps: PyBullet's client id, or MuJoCo's source itself
+    (it has the ``model`` and ``data``)."""
+    return getattr(source, "client", source)
 
 
 def world_reader(world: Any) -> World | MuJoCoWorldReader | None:

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from rich.progress import Progress
 
     from evclock.ros2._cli import Ros2ClockOptions
+    from evclock.ros2._publisher import Ros2ClockPublisher
     from evclock.tools._record import Recorder
 
 PHYSICS_HZ = 240
@@ -60,7 +61,8 @@ class LoopReport:
     :ivar name: the loop's name.
     :ivar hz: its frequency, in hertz.
     :ivar stats: its :class:`~evclock.LoopStats` figures (ticks, misses, lateness...).
-    :ivar on_physics_steps: whether its deadlines fall on physics steps (None: unknown).
+    :ivar on_physics_steps: whether its deadlines fall on physics steps (None: no physics
+        step is known).
     """
 
     name: str
@@ -69,7 +71,9 @@ class LoopReport:
     on_physics_steps: bool | None = None
     """Whether every deadline of the loop falls on a physics step (its period is a whole
     number of steps); when not, a tick runs at the first step at or after its deadline, up
-    to one step late by quantisation alone. None where no physics step is known (wall time)."""
+    to one step late by quantisation alone. None where no physics step is known: a wall-time
+    run, and the controllers of a split run whose server does not serve its physics step
+    (evclock 0.2's did not); known on both sides of a split run otherwise."""
 
 
 @dataclasses.dataclass
@@ -285,16 +289,19 @@ def import_pybullet_quietly() -> None:
 
 def _loop_reports(clk: Clock, step_ns: Fraction | None = None) -> list[LoopReport]:
     """A report per rate loop of ``clk``; with the physics step ``step_ns``, whether each
-    loop's deadlines fall on physics steps (its exact period a whole number of steps)."""
+    loop's deadlines fall on physics steps."""
     return [
-        LoopReport(
-            rate.name,
-            float(rate.hz),
-            rate.stats.as_dict(),
-            None if step_ns is None else (_period_fraction(rate.hz) / step_ns).denominator == 1,
-        )
-        for rate in clk.rates
+        loop_report(rate.name, float(rate.hz), rate.stats.as_dict(), step_ns) for rate in clk.rates
     ]
+
+
+def loop_report(
+    name: str, hz: float, stats: dict[str, float | int], step_ns: Fraction | None
+) -> LoopReport:
+    """The report of one rate loop; with the physics step ``step_ns``, whether its deadlines
+    fall on physics steps (its exact period a whole number of steps)."""
+    on_steps = None if step_ns is None else (_period_fraction(hz) / step_ns).denominator == 1
+    return LoopReport(name, hz, stats, on_steps)
 
 
 def scenario_class(scenario: str | type[Any], params: dict[str, ParamValue]) -> type[Any]:
@@ -392,14 +399,17 @@ def step_hooks_of(scenario: Any) -> tuple[Any, Any]:
     return found[0], found[1]
 
 
-def install_step_hooks(scenario: Any, source: Any) -> None:
+def install_step_hooks(scenario: Any, source: Any) -> list[Any]:
     """Register the scenario's per-physics-step hooks (see :func:`step_hooks_of`) on the
-    stepping ``source``: ``before_step`` before every physics step, ``after_step`` after."""
+    stepping ``source``: ``before_step`` before every physics step, ``after_step`` after.
+    Returns the registered :class:`~evclock.sources.StepHook` handles (``remove()`` each)."""
     before, after = step_hooks_of(scenario)
+    hooks = []
     if before is not None:
-        source.add_step_hook(before, "before")
+        hooks.append(source.add_step_hook(before, "before"))
     if after is not None:
-        source.add_step_hook(after, "after")
+        hooks.append(source.add_step_hook(after, "after"))
+    return hooks
 
 
 def _set_up(cls: type[Any], client: int, seed: int, output: list[str]) -> Any:
@@ -510,9 +520,9 @@ def _run_on_sim_time(
         raise
     install_step_hooks(scenario, source)
     try:
-        from evclock.tools._record import open_recorder  # to --record and/or --foxglove
+        from evclock.tools._record import open_recorder, world_of  # --record, --foxglove
 
-        recorder = open_recorder(record, cls, seed, params, limit)
+        recorder = open_recorder(record, cls, seed, params, limit, world=world_of(source))
     except BaseException:
         source.close()
         raise
@@ -530,9 +540,12 @@ def _run_on_sim_time(
             progress.refresh()
             await asyncio.sleep(_PROGRESS_PERIOD)
 
-    async def main() -> RunReport:
+    async def main(clock_publisher: Ros2ClockPublisher | None) -> RunReport:
         loop = asyncio.get_running_loop()
         assert isinstance(loop, SimEventLoop)
+        wait = None if ros2_clock is None else ros2_clock.wait_for_subscribers
+        if clock_publisher is not None and ros2_clock is not None and wait is not None:
+            await clock_publisher.wait_for_subscribers(wait, timeout=ros2_clock.wait_timeout)
         clk = clock()
         if recorder is not None:
             recorder.attach(source, clk, scenario.state_vector)
@@ -576,10 +589,10 @@ def _run_on_sim_time(
     report: RunReport | None = None
     try:
         with (
-            publishing(source, ros2_clock),
-            publishing_robot_state(source, ros2_clock),
+            publishing(source, ros2_clock) as clock_publisher,
+            publishing_robot_state(source, ros2_clock, getattr(scenario, "robot_urdf", None)),
         ):
-            report = evclock_run(main(), source=source, rtf=rtf)
+            report = evclock_run(main(clock_publisher), source=source, rtf=rtf)
     finally:
         if recorder is not None:
             recorder.close(None if report is None else _outcome(report))
@@ -612,7 +625,9 @@ def _run_on_wall_time(
         except Exception as exc:
             return _error_report(cls, seed, "wall", limit, output, exc)
         task_id = progress.add_task(cls.name, total=limit, rtf="1 (wall)") if progress else None
-        recorder = open_recorder(record, cls, seed, params or {}, limit, mode="wall")
+        recorder = open_recorder(
+            record, cls, seed, params or {}, limit, mode="wall", world=engine_world
+        )
         refresh_every = round(PHYSICS_HZ * _PROGRESS_PERIOD)
 
         before, after = step_hooks_of(scenario)
@@ -635,7 +650,7 @@ def _run_on_wall_time(
         async def main() -> RunReport:
             clk = clock()
             if recorder is not None:
-                recorder.attach(None, clk, scenario.state_vector, world=engine_world)
+                recorder.attach(None, clk, scenario.state_vector)
             start = clk.now().seconds
             physics = asyncio.create_task(world())
             outcome = _Outcome()

@@ -75,9 +75,12 @@ class MuJoCoWorldReader:
             self.bodies[unique_name(name, taken)] = root
         tree_of = {root: name for name, root in self.bodies.items()}
         self._frames: list[tuple[int, str]] = []  # body id, frame name
+        self._links: dict[str, str] = {}  # frame name -> body (a URDF's link) name
         for b in range(1, model.nbody):
             tree = tree_of[int(model.body_rootid[b])]
-            self._frames.append((b, f"{tree}/{_name(mj, model, body_kind, b, f'body{b}')}"))
+            link = _name(mj, model, body_kind, b, f"body{b}")
+            self._frames.append((b, f"{tree}/{link}"))
+            self._links[f"{tree}/{link}"] = link
         joint_kind = mj.mjtObj.mjOBJ_JOINT
         self._joints: list[tuple[str, int, int, int]] = []  # name, tree root, qpos, dof
         for j in range(model.njnt):
@@ -96,6 +99,11 @@ class MuJoCoWorldReader:
     def joint_names(self) -> list[str]:
         """Every moving (hinge or slide) joint's name, in joint order."""
         return [joint[0] for joint in self._joints]
+
+    @property
+    def link_names(self) -> dict[str, str]:
+        """Each body frame (``<tree>/<body>``) -> the body's name (a URDF's link name)."""
+        return dict(self._links)
 
     def _current(self) -> Any:
         """The scratch data with the poses and velocities of the run's current state."""

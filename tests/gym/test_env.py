@@ -306,13 +306,49 @@ def test_a_scenario_without_the_protocol_is_refused() -> None:
     )
 
 
-def test_another_controller_than_the_scenarios_is_refused() -> None:
+@pytest.mark.parametrize(
+    ("name", "controller", "choices"),
+    [
+        ("kuka", "gripper", "'joint_control', 'planner'"),  # no such controller
+        ("cartpole", "monitor", "'balance'"),  # a controller, but not a replaceable one
+    ],
+)
+def test_a_controller_an_agent_cannot_replace_is_refused_naming_those_it_can(
+    name: str, controller: str, choices: str
+) -> None:
     with pytest.raises(AgentProtocolError) as info:
-        ScenarioEnv("kuka", controller="planner")
+        ScenarioEnv(name, controller=controller)
+    assert isinstance(info.value, evclock.EvClockError)
     assert str(info.value) == (
-        "scenario 'kuka' lets an agent replace its controller 'joint_control', not "
-        "'planner': pass controller='joint_control' (or leave it out)"
+        f"scenario {name!r} has no controller {controller!r} an agent can replace; choose "
+        f"one of: {choices}"
     )
+
+
+@pytest.mark.parametrize("engine", ENGINES)
+def test_the_agent_replaces_the_kukas_planner_at_its_own_rate(engine: str) -> None:
+    env = gymnasium.make("evclock/KukaReach-v0", engine=engine, controller="planner")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        check_env(env.unwrapped)
+    assert env.unwrapped.hz == 10.0
+    assert env.observation_space.shape == (13,)  # joints, flange, target: no planner's goal
+    assert env.action_space.shape == (7,)
+    observation, info = env.reset(seed=0)
+    assert observation.shape == (13,)
+    goal = np.linspace(-0.5, 0.5, 7)
+    for k in range(1, 4):
+        _, reward, terminated, truncated, info = env.step(goal)
+        assert info["sim_time"] == pytest.approx(k / 10, abs=1e-9)
+        assert not terminated
+        assert not truncated
+        assert reward < 0.0
+    # The agent is the 10 Hz planner; the mission still tracks the targets at 10 Hz.
+    assert info["ticks"] == {"joint_control": 31, "planner": 4, "targets": 4}
+    scenario = env.unwrapped.scenario
+    lower, upper = np.array(scenario.lower), np.array(scenario.upper)
+    assert scenario.goal.tolist() == (lower + (goal + 1.0) * 0.5 * (upper - lower)).tolist()
+    env.close()
 
 
 def test_reset_options_and_render_modes_are_refused() -> None:

@@ -29,10 +29,10 @@ CHILD_TIMEOUT = 300
 class Recording:
     """A deterministic policy that records what it saw and did."""
 
-    def __init__(self, size: int) -> None:
+    def __init__(self, size: int, observations: int) -> None:
         rng = np.random.default_rng(5)
         # Small gains: the cart-pole's pole does not fall within the test's steps.
-        self.weights = rng.uniform(-0.05, 0.05, size=(size, 4 if size == 1 else 20))
+        self.weights = rng.uniform(-0.05, 0.05, size=(size, observations))
         self.seen: list[np.ndarray] = []
         self.done: list[np.ndarray] = []
 
@@ -52,8 +52,20 @@ def lqr_policy() -> LinearPolicy:
     return policy
 
 
-def env_rollout(name: str, engine: str, policy: Any, seed: int, steps: int) -> dict[str, Any]:
-    env = ScenarioEnv(name, engine=engine)
+def env_rollout(
+    name: str, engine: str, policy: Any, seed: int, steps: int, controller: str | None = None
+) -> dict[str, Any]:
+    """``steps`` steps of ``policy`` from a reset with ``seed``, after other episodes (one cut
+    short by a reset, one to its end): a reset in place is a new run."""
+    env = ScenarioEnv(name, controller, engine=engine, max_episode_seconds=2.5)
+    env.reset(seed=seed + 1)
+    for _ in range(3):
+        env.step(env.action_space.sample())
+    env.reset(seed=seed + 2)
+    done = False
+    while not done:
+        *_, terminated, truncated, _ = env.step(np.ones(env.action_space.shape))
+        done = terminated or truncated
     observation, _ = env.reset(seed=seed)
     for _ in range(steps):
         observation, _, terminated, truncated, info = env.step(policy(observation))
@@ -65,17 +77,22 @@ def env_rollout(name: str, engine: str, policy: Any, seed: int, steps: int) -> d
 
 
 @pytest.mark.parametrize("engine", ENGINES)
-@pytest.mark.parametrize(("name", "actions"), [("cartpole", 1), ("kuka", 7)])
+@pytest.mark.parametrize(
+    ("name", "controller", "actions", "observations"),
+    [("cartpole", None, 1, 4), ("kuka", None, 7, 20), ("kuka", "planner", 7, 13)],
+)
 def test_a_rollout_and_the_policy_as_controller_give_identical_trajectories(
-    name: str, actions: int, engine: str
+    name: str, controller: str | None, actions: int, observations: int, engine: str
 ) -> None:
     steps = 20
-    in_env = Recording(actions)
-    rolled = env_rollout(name, engine, in_env, seed=2, steps=steps)
+    in_env = Recording(actions, observations)
+    rolled = env_rollout(name, engine, in_env, seed=2, steps=steps, controller=controller)
 
-    as_controller = Recording(actions)
+    as_controller = Recording(actions, observations)
     source, scenario = open_world(load_scenario(name), 2, engine=engine)
-    controller = PolicyController(as_controller, scenario).install()
+    if controller is not None:
+        scenario.agent_controller = controller  # the policy replaces that one
+    policy_controller = PolicyController(as_controller, scenario).install()
 
     async def main() -> list[float]:
         with pytest.raises(TimeoutError):
@@ -89,7 +106,7 @@ def test_a_rollout_and_the_policy_as_controller_give_identical_trajectories(
         source.close()
     # The controller also ran its tick at the end time, where the rollout stopped (that
     # action would act at the next physics step: none).
-    assert controller.steps == steps + 1
+    assert policy_controller.steps == steps + 1
     seen, done = np.array(as_controller.seen[:steps]), np.array(as_controller.done[:steps])
     assert seen.tobytes() == np.array(in_env.seen).tobytes()
     assert done.tobytes() == np.array(in_env.done).tobytes()

@@ -23,28 +23,28 @@ class ScriptedHost:
         self.wakeable = False
         self.interrupted = 0
 
-    def anything_runnable(self) -> bool:
+    def _anything_runnable(self) -> bool:
         return self.runnable
 
-    def held_horizon(self, paused: bool) -> int | None:
+    def _held_horizon(self, paused: bool) -> int | None:
         return 0 if self.held else None
 
-    def before_moving(self) -> None:
+    def _before_moving(self) -> None:
         pass
 
-    def could_wake(self) -> bool:
+    def _could_wake(self) -> bool:
         return self.wakeable
 
-    def interrupt_wait(self) -> None:
+    def _interrupt_wait(self) -> None:
         self.interrupted += 1
 
-    def serves(self, loop: asyncio.AbstractEventLoop) -> bool:
+    def _serves(self, loop: asyncio.AbstractEventLoop) -> bool:
         return loop is self.loop
 
-    def is_closed(self) -> bool:
+    def _is_closed(self) -> bool:
         return False
 
-    def call_exception_handler(self, context: dict[str, Any]) -> None:
+    def _call_exception_handler(self, context: dict[str, Any]) -> None:
         raise AssertionError(context)
 
     @property
@@ -94,7 +94,7 @@ def test_a_pause_outranks_a_hold_and_a_step_asks_whether_paused(
     seen: list[bool] = []
     core, host = make(loop)
     host.held = True
-    host.held_horizon = lambda paused: seen.append(paused) or (0 if host.held else None)  # type: ignore[method-assign]
+    host._held_horizon = lambda paused: seen.append(paused) or (0 if host.held else None)  # type: ignore[method-assign]
     core.stop_at(5)
     core.pacer.pause()
     assert core.advance() == PACING  # paused, no step left: wait for a control, unbounded

@@ -249,7 +249,7 @@ evclock.run(main())
 
 def test_a_lockstep_participant_waits_for_its_grant_inside_the_advance(tmp_path: Path) -> None:
     """A participant with nothing else outside its loop waits for the grant in the loop's
-    request to advance (SimEventLoop.wait_for_source) and moves at once: its loop's selector
+    request to advance (SimEventLoop._wait_for_source) and moves at once: its loop's selector
     is not polled per round (it was, once or twice, before). Only the server's keepalives
     (every 0.2 s of wall time, read through the loop) and the leave may poll it."""
     url = address(tmp_path)

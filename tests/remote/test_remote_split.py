@@ -98,6 +98,13 @@ def test_split_run_ends_bit_identical_to_the_in_process_run(
     assert [loop["stats"]["ticks"] for loop in served["loops"]] == [
         loop["stats"]["ticks"] for loop in in_process["loops"]
     ]
+    # Both sides know the physics step (the simulation serves it): whether each loop's
+    # deadlines fall on physics steps is the in-process run's, never unknown.
+    steps = [loop["on_physics_steps"] for loop in in_process["loops"]]
+    assert None not in steps
+    assert [loop["on_physics_steps"] for loop in served["loops"]] == steps
+    assert [loop["on_physics_steps"] for loop in joined["loops"]] == steps
+    assert served["physics_step_s"] == joined["physics_step_s"] == in_process["physics_step_s"]
 
 
 @pytest.mark.pybullet
@@ -201,3 +208,20 @@ def test_a_served_in_process_run_can_be_followed(tmp_path: Path) -> None:
     assert len(times) == 5
     assert all(abs(t / step - round(t / step)) < 1e-6 for t in times)  # physics step times
     assert times == sorted(times)
+
+
+def test_the_controllers_read_the_served_physics_step() -> None:
+    from fractions import Fraction
+
+    from evclock import InvalidArgumentError
+    from evclock.tools._cli_remote import _served_step_ns
+
+    assert _served_step_ns({"physics_step_ns": [12500000, 3]}, "unix:///s") == Fraction(12500000, 3)
+    assert _served_step_ns({}, "unix:///s") is None  # a server that does not say (0.2)
+    for bad in ([1], [0, 3], [1.5, 3], "1/240", [True, 3]):
+        with pytest.raises(InvalidArgumentError) as raised:
+            _served_step_ns({"physics_step_ns": bad}, "unix:///s")
+        assert str(raised.value) == (
+            f"the simulation at unix:///s serves a malformed physics step {bad!r}: expected "
+            "[numerator, denominator] in nanoseconds, two positive integers"
+        )

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
 import secrets
 import ssl
 from pathlib import Path
@@ -264,14 +265,12 @@ def test_a_plain_participant_is_told_the_server_speaks_tls(tmp_path: Path, certs
 
     error, served = evclock.run(main())
     plain = served.replace("tls://", "tcp://")
-    # It refuses in plain text; the participant (with a token) trusts nothing an unproven
-    # server says, but shows what it said.
+    # It refuses in plain text, saying it serves TLS only: the participant (with a token)
+    # shows nothing an unproven server wrote, only what to do.
     assert error == (
-        f"evclock.remote.JoinRefusedError: the clock server at {plain} answered the HELLO "
-        f"with a REFUSE (saying 'this clock server speaks TLS: join it with {served} (and "
-        "?tls_ca= or ?tls_fingerprint= to verify it), not plain tcp://') before proving it "
-        "knows the token: it is an unauthenticated server (not the simulation you meant, or "
-        "not an evclock clock server); nothing but the HELLO was sent to it"
+        f"evclock.remote.JoinRefusedError: the clock server at {plain} serves TLS only: join "
+        f"it with {served}, verified with tls_ca or tls_fingerprint (evclock control: "
+        "--tls-ca or --tls-fingerprint); nothing but the HELLO was sent to it"
     )
 
 
@@ -344,9 +343,25 @@ def test_allow_remote_needs_tls_and_a_token(certs: Certs) -> None:
         "serving on tls://0.0.0.0:0 needs a shared token (token=... or ?token=... in the "
         "address): any user of the machine can reach a tls port"
     )
-    with pytest.raises(evclock.InvalidArgumentError) as plain:
-        serving("tcp://0.0.0.0:0", allow_remote=True, token=TOKEN)
-    assert str(plain.value) == (
+    # allow_remote is for tls:// alone: refused on any tcp:// address, loopback or not, and
+    # on a Unix socket.
+    for url in ("tcp://0.0.0.0:0", "tcp://127.0.0.1:0"):
+        with pytest.raises(evclock.InvalidArgumentError) as plain:
+            serving(url, allow_remote=True, token=TOKEN)
+        assert str(plain.value) == (
+            f"allow_remote=True is for tls:// addresses, not {url}: plain tcp:// stays on "
+            "this machine (unencrypted, and any host could pose as the server); serve across "
+            "machines on tls://HOST:PORT with a certificate (tls_cert=, tls_key=) and a token"
+        )
+    with pytest.raises(evclock.InvalidArgumentError) as unix:
+        serving("unix:///tmp/evclock-never-made.sock", allow_remote=True)
+    assert str(unix.value) == (
+        "allow_remote=True is for tls:// addresses, not unix:///tmp/evclock-never-made.sock: a "
+        "unix:// socket is reached from this machine only; drop allow_remote"
+    )
+    with pytest.raises(evclock.InvalidArgumentError) as beyond:
+        serving("tcp://0.0.0.0:0", token=TOKEN)
+    assert str(beyond.value) == (
         "tcp://0.0.0.0:0 is not a loopback address, and plain tcp:// would carry the "
         "simulation's time and data unencrypted to anyone on the path and let any host pose "
         "as the server: serve across machines on tls://HOST:PORT with a certificate "
@@ -399,6 +414,73 @@ def test_a_tls_participant_needs_a_way_to_verify_the_server(certs: Certs) -> Non
     parsed = parse_address(f"tls://[::1]:7411?tls_fingerprint={certs.fingerprint}")
     assert str(parsed) == "tls://[::1]:7411"
     assert parsed.tls_fingerprint == bytes.fromhex(certs.fingerprint.replace(":", ""))
+
+
+def test_a_tls_server_is_verified_one_way(certs: Certs) -> None:
+    one_way = (
+        "a tls:// server is verified one way: give tls_ca (the CA that signed its "
+        "certificate) or tls_fingerprint (its certificate's fingerprint), not both"
+    )
+    both = f"tls://127.0.0.1:1?tls_ca={certs.ca}&tls_fingerprint={certs.fingerprint}"
+    with pytest.raises(evclock.InvalidArgumentError) as in_address:
+        parse_address(both)
+    assert str(in_address.value) == f"{one_way}, in clock address {both!r}"
+    with pytest.raises(evclock.InvalidArgumentError) as given:
+        RemoteClockSource(
+            f"tls://127.0.0.1:1?token={TOKEN}",
+            tls_ca=str(certs.ca),
+            tls_fingerprint=certs.fingerprint,
+        )
+    assert str(given.value) == one_way
+    # Given besides the address, a way replaces the address's own.
+    from evclock.remote._address import with_verification
+
+    by_ca = parse_address(f"tls://127.0.0.1:1?tls_ca={certs.ca}")
+    pinned = with_verification(by_ca, None, certs.fingerprint)
+    fingerprint = bytes.fromhex(certs.fingerprint.replace(":", ""))
+    assert (pinned.tls_ca, pinned.tls_fingerprint) == (None, fingerprint)
+    assert with_verification(pinned, str(certs.ca), None).tls_fingerprint is None
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (
+            ["run", "cartpole", "--serve", "tcp://127.0.0.1:7411", "--allow-remote"],
+            "--allow-remote is for --serve tls://HOST:PORT, not tcp://: plain tcp:// stays on "
+            "this machine (unencrypted, and any host could pose as the server); serve across "
+            "machines on tls://HOST:PORT with --tls-cert and --tls-key",
+        ),
+        (
+            ["run", "cartpole", "--serve", "unix:///tmp/evclock-never.sock", "--allow-remote"],
+            "--allow-remote is for --serve tls://HOST:PORT, not unix://: a unix:// socket is "
+            "reached from this machine only; drop --allow-remote",
+        ),
+        (
+            ["control", "cartpole", "--clock", "tls://127.0.0.1:7411", "--tls-ca", "ca.pem",
+             "--tls-fingerprint", "AB:CD"],
+            "--tls-ca and --tls-fingerprint are two ways to verify the simulation: give one "
+            "(--tls-ca for a certificate your CA signed, --tls-fingerprint for a self-signed "
+            "one)",
+        ),
+        (
+            ["control", "cartpole", "--clock", "tls://127.0.0.1:7411"],
+            "joining the simulation at tls://127.0.0.1:7411 needs a way to verify it: --tls-ca "
+            "FILE (the CA that signed its certificate) or --tls-fingerprint SHA256 (its "
+            "certificate's fingerprint)",
+        ),
+        (
+            ["control", "cartpole", "--clock", "tcp://127.0.0.1:7411", "--tls-ca", "ca.pem"],
+            "--tls-ca and --tls-fingerprint verify a simulation served on tls://, not tcp://: "
+            "drop the option, or join it with --clock tls://HOST:PORT",
+        ),
+    ],
+)  # fmt: skip
+def test_tls_options_that_cannot_work_are_usage_errors(args: list[str], message: str) -> None:
+    from _cli import run_evclock
+
+    proc = run_evclock(*args, "--quiet", env={**os.environ, "EVCLOCK_TOKEN": TOKEN})
+    assert (proc.returncode, proc.stdout, proc.stderr) == (2, "", f"error: {message}\n")
 
 
 def test_a_read_takes_what_the_ssl_object_decrypted_already(certs: Certs) -> None:

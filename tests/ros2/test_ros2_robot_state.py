@@ -1,4 +1,5 @@
-"""``evclock run SCENARIO --ros2``: the robot on /joint_states and /tf over DDS, on sim time.
+"""``evclock run SCENARIO --ros2``: the robot on /joint_states, /tf and /robot_description over
+DDS, on sim time.
 
 A plain Cyclone DDS participant of the test reads the topics with ROS's type names, written
 here from the message definitions; every wait is bounded. Loopback only, a test-unique domain
@@ -69,6 +70,7 @@ TransformStamped_ = make_idl_struct(
 TFMessage_ = make_idl_struct(
     "TFMessage_", "tf2_msgs::msg::dds_::TFMessage_", {"transforms": t.sequence[TransformStamped_]}
 )
+String_ = make_idl_struct("String_", "std_msgs::msg::dds_::String_", {"data": str})
 RELIABLE = Qos(Policy.Reliability.Reliable(max_blocking_time=100_000_000), Policy.History.KeepAll)
 #: tf2_ros' StaticListenerQoS: a late joiner still gets the static frames.
 STATIC = Qos(
@@ -138,14 +140,15 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     if engine == "mujoco":
         (static,) = statics
         assert [(f.header.frame_id, f.child_frame_id) for f in static.transforms] == [
-            ("world", "lbr_iiwa/lbr_iiwa_link_0")
+            ("world", "lbr_iiwa_link_0")
         ]
         assert stamp_ns(static.transforms[0].header) == 0
     else:
         assert statics == []
     static_frames = {f.child_frame_id for m in statics for f in m.transforms}
     assert not moving & static_frames
-    assert moving | static_frames == {f"lbr_iiwa/lbr_iiwa_link_{k}" for k in range(8)}
+    # Named after the URDF's links, as robot_state_publisher names them (no prefix asked).
+    assert moving | static_frames == {f"lbr_iiwa_link_{k}" for k in range(8)}
     # The payload layout is rosbags' (the message definitions of ROS 2 Jazzy).
     store = rosbags_typesys.get_typestore(rosbags_typesys.Stores.ROS2_JAZZY)
     last = states[-1]
@@ -153,6 +156,35 @@ def test_run_publishes_joint_states_and_tf_on_sim_time(
     assert list(rebuilt.name) == list(last.name)
     assert list(rebuilt.position) == list(last.position)
     assert bytes(store.serialize_cdr(rebuilt, "sensor_msgs/msg/JointState")) == last.serialize()
+
+
+def test_frame_prefix_and_robot_description(plain: DomainParticipant) -> None:
+    # Two robots in one ROS graph: --ros2-frame-prefix puts each one's frames apart, as
+    # robot_state_publisher's frame_prefix does (world, the fixed frame, is shared); the URDF
+    # reaches a subscriber on /robot_description as robot_state_publisher's subscribers take it.
+    pytest.importorskip("mujoco")
+    from evclock.tools._ros2_state import robot_description
+    from evclock_sims._mujoco import model_path
+
+    tf = DataReader(plain, Topic(plain, "rt/tf", TFMessage_), qos=RELIABLE)
+    tf_static = DataReader(plain, Topic(plain, "rt/tf_static", TFMessage_), qos=STATIC)
+    urdf = DataReader(plain, Topic(plain, "rt/robot_description", String_), qos=STATIC)
+    frames: list[Any] = []
+    descriptions: list[Any] = []
+
+    def drain() -> None:
+        frames.extend(m for m in tf.take(256) + tf_static.take(16) if isinstance(m, TFMessage_))
+        descriptions.extend(m for m in urdf.take(4) if isinstance(m, String_))
+
+    options = ["--ros2", "--ros2-frame-prefix", "robot1/", "--until", "0.05"]
+    status, _out, err = run_draining(
+        [*EVCLOCK_RUN, "kuka", "--engine", "mujoco", *options], drain, ROOT
+    )
+    assert status == 3, err
+    names = {(f.header.frame_id, f.child_frame_id) for m in frames for f in m.transforms}
+    assert names == {("world", f"robot1/lbr_iiwa_link_{k}") for k in range(8)}
+    (description,) = descriptions
+    assert description.data == robot_description(model_path("kuka_iiwa/model.urdf"))
 
 
 def test_a_fixed_joint_is_a_static_frame_in_its_parents_frame() -> None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import re
 from collections.abc import Iterator
 from fractions import Fraction
-from pathlib import Path
 
 import pytest
 
@@ -24,21 +23,11 @@ pytest.importorskip("uvicorn", reason="needs evclock[dashboard] (uvicorn)")
 pytest.importorskip("PIL", reason="needs evclock[dashboard] (Pillow)")
 pytest.importorskip("playwright", reason="needs playwright (evclock[test])")
 
+from _chromium import CHROMIUM, CHROMIUM_FLAGS
 from playwright.sync_api import Page, expect, sync_playwright
 
 from examples.dashboard import BackgroundServer, DashboardConfig, create_app
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_FLAGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 TIMEOUT_MS = 30_000
 """Bound of every wait on the page (a hang guard, not a performance check)."""
 STEP_NS = Fraction(10**9, 240)

@@ -14,6 +14,7 @@ import sys
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
+from xml.etree import ElementTree
 
 import pytest
 from _cli import run_evclock
@@ -203,31 +204,13 @@ def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path
     with _live_view(tmp_path, *run, "--record", "watched.mcap") as (proc, url):
         with connect(url, subprotocols=[SUBPROTOCOL], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
             client = Client(ws)
-            client.until(lambda: "/evclock/scene" in client.channels())
+            client.until(lambda: any(t > 0 for t in client.times))  # the run is under way
             scene = client.channels()["/evclock/scene"]["id"]
-            subscribe = json.dumps(
-                {"op": "subscribe", "subscriptions": [{"id": 7, "channelId": scene}]}
+            client.ws.send(
+                json.dumps({"op": "subscribe", "subscriptions": [{"id": 7, "channelId": scene}]})
             )
-            client.ws.send(subscribe)
-            sent = {"refusals": 0, "times": 0}
-
-            def scene_received() -> bool:
-                # foxglove-sdk 0.30 advertises a new channel before it can subscribe a
-                # client to it: a subscription sent at once may be refused ("Unknown channel
-                # ID"). Subscribe again after the next sim-time broadcast (a bounded number
-                # of times).
-                refusals = [op["message"] for op in client.ops.get("status", [])]
-                if len(refusals) > sent["refusals"] and len(client.times) > sent["times"]:
-                    assert all(m.startswith("Unknown channel ID") for m in refusals), refusals
-                    assert len(refusals) < 20, refusals
-                    sent.update(refusals=len(refusals), times=len(client.times))
-                    client.ws.send(subscribe)
-                # Sent again after the start, to this viewer (which may also have got the
-                # first one, at 0, if it subscribed in time).
-                return any(s == 7 and t > 0 for s, t, _ in client.data)
-
-            client.until(scene_received)
-            assert all(m["entities"] for s, _, m in client.data if s == 7)
+            client.until(lambda: any(s == 7 for s, _, _ in client.data))
+            assert all(m["entities"] and t > 0 for s, t, m in client.data if s == 7)
             with pytest.raises(ConnectionClosedOK):
                 client.until(lambda: False)
         watched = proc.wait(timeout=WAIT_S)
@@ -241,3 +224,117 @@ def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path
     assert scenes == [0]
     diff = run_evclock("trace", "diff", "watched.mcap", "plain.mcap", cwd=tmp_path)
     assert diff.returncode == 0, diff.stdout + diff.stderr
+
+
+KUKA_URDF = Path(__file__).parents[2] / "sims" / "models" / "kuka_iiwa" / "model.urdf"
+
+
+def _drawn_links() -> set[str]:
+    """The frames of the KUKA model's links that have a visual (``robot/link``), read from
+    the URDF both engines load."""
+    robot = ElementTree.parse(KUKA_URDF).getroot()
+    return {
+        f"{robot.get('name')}/{link.get('name')}"
+        for link in robot.iter("link")
+        if link.find("visual") is not None
+    }
+
+
+class Viewer(Client):
+    """A client as Foxglove is one: it subscribes to every channel once, when it is
+    advertised, and never asks again."""
+
+    def __init__(self, ws: ClientConnection) -> None:
+        super().__init__(ws)
+        self.topics: dict[int, str] = {}  # subscription id -> topic
+
+    def receive(self) -> None:
+        advertised = len(self.ops.get("advertise", []))
+        super().receive()
+        for op in self.ops.get("advertise", [])[advertised:]:
+            subscriptions = []
+            for channel in op["channels"]:
+                self.topics[len(self.topics) + 1] = channel["topic"]
+                subscriptions.append({"id": len(self.topics), "channelId": channel["id"]})
+            self.ws.send(json.dumps({"op": "subscribe", "subscriptions": subscriptions}))
+
+    def scenes(self) -> list[tuple[int, Any]]:
+        return [(t, m) for s, t, m in self.data if self.topics[s] == "/evclock/scene"]
+
+
+def _sees_the_robot(viewer: Viewer, joined_at_ns: int = 0) -> None:
+    """``viewer`` is sent the scene, drawing every link of the model with a visual, stamped
+    at or after ``joined_at_ns``."""
+    # Told of the world's channels as it connects, whenever that is.
+    viewer.until(lambda: "advertise" in viewer.ops)
+    first = {c["topic"] for c in viewer.ops["advertise"][0]["channels"]}
+    assert {"/evclock/scene", "/evclock/joints", "/evclock/transforms"} <= first, first
+    viewer.until(lambda: bool(viewer.scenes()))
+    refused = [op["message"] for op in viewer.ops.get("status", [])]
+    scene_id = viewer.channels()["/evclock/scene"]["id"]
+    assert f"Unknown channel ID: {scene_id}" not in refused, refused
+    stamp, scene = viewer.scenes()[0]
+    assert stamp >= joined_at_ns
+    entities = {e["id"]: e for e in scene["entities"]}
+    assert set(entities) == _drawn_links()
+    for frame, entity in entities.items():
+        assert entity["frame_id"] == frame
+        assert entity["frame_locked"] is True
+        assert entity["models"] or entity["cubes"] or entity["cylinders"], frame
+
+
+@contextlib.contextmanager
+def _viewer(url: str) -> Iterator[Viewer]:
+    from websockets.sync.client import connect
+
+    with connect(url, subprotocols=[SUBPROTOCOL], open_timeout=WAIT_S) as ws:  # type: ignore[list-item]
+        yield Viewer(ws)
+
+
+ENGINES = [pytest.param("pybullet", marks=pytest.mark.pybullet), "mujoco"]
+LONG_RUN = ["--seed", "1", "--until", "60", "--param", "dwell=60", "--quiet"]  # no early end
+
+
+@needs_live
+@pytest.mark.parametrize("engine", ENGINES)
+@pytest.mark.parametrize(
+    "options", [[], ["--rtf", "2", "--record", "run.mcap"]], ids=["live", "live-record"]
+)
+def test_every_viewer_sees_the_robot(engine: str, options: list[str], tmp_path: Path) -> None:
+    """A viewer connecting as the run starts is sent the scene: the model's links, drawn;
+    so is one connecting later, while the run is paused (it takes no samples then)."""
+    run = ["run", "kuka", "--engine", engine, *LONG_RUN, *options]
+    with _live_view(tmp_path, *run) as (_proc, url), _viewer(url) as early:
+        _sees_the_robot(early)
+        early.until(lambda: any(t > 0 for t in early.times))  # the run is under way
+        services = {s["name"]: s["id"] for s in early.ops["advertiseServices"][0]["services"]}
+        assert early.call(services["/evclock/pause"], 1, {}) == {}
+        with _viewer(url) as late:
+            _sees_the_robot(late, joined_at_ns=early.times[-1])
+
+
+@needs_live
+@pytest.mark.parametrize("engine", ENGINES)
+def test_a_viewer_of_a_split_run_sees_the_robot(engine: str, tmp_path: Path) -> None:
+    """The simulation of a split run serves the live view: its viewers see the robot while
+    the controllers run in another process."""
+    address = f"unix://{tmp_path / 'sim.sock'}"
+    # --serve runs the scenario as registered (no --param): its mission, at real time, lasts
+    # seconds of wall time after the controllers join, long after both viewers saw the scene.
+    run = ["--seed", "1", "--quiet"]
+    sim = ["run", "kuka", "--engine", engine, *run, "--serve", address, "--remote-controllers"]
+    with _live_view(tmp_path, *sim) as (_proc, url):
+        controllers = subprocess.Popen(
+            [sys.executable, "-m", "evclock", "control", "kuka", "--engine", engine, *run,
+             "--clock", address],
+            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, cwd=tmp_path,
+        )  # fmt: skip
+        try:
+            with _viewer(url) as early:
+                _sees_the_robot(early)
+                early.until(lambda: bool(early.times))
+                with _viewer(url) as late:
+                    _sees_the_robot(late, joined_at_ns=early.times[-1])
+        finally:
+            controllers.kill()
+            controllers.communicate(timeout=WAIT_S)
