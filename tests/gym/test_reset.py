@@ -9,6 +9,7 @@ controller.)
 from __future__ import annotations
 
 import asyncio
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -116,7 +117,10 @@ def test_a_reset_brings_sim_time_back_to_zero_with_only_the_new_episodes_loops(
     env.close()
 
 
-def test_after_the_physics_raised_a_reset_builds_world_and_loop_anew() -> None:
+def test_after_the_physics_raised_a_reset_builds_world_and_loop_anew(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.chdir(tmp_path)  # MuJoCo appends its warning to MUJOCO_LOG.TXT here
     from evclock_sims import CartPole
 
     class Faulty(CartPole):
