@@ -77,7 +77,7 @@ if TYPE_CHECKING:
     )
 
     __version__: str
-    """The installed version of evclock (``"0.2.0"``), read from the distribution's metadata
+    """The installed version of evclock (``"0.3.0"``), read from the distribution's metadata
     on first access; ``evclock --version`` prints it."""
 
 __all__ = [
