@@ -226,13 +226,12 @@ def test_what_a_late_viewer_is_sent_never_goes_into_the_recording(tmp_path: Path
     assert diff.returncode == 0, diff.stdout + diff.stderr
 
 
-KUKA_URDF = Path(__file__).parents[2] / "sims" / "models" / "kuka_iiwa" / "model.urdf"
-
-
 def _drawn_links() -> set[str]:
     """The frames of the KUKA model's links that have a visual (``robot/link``), read from
     the URDF both engines load."""
-    robot = ElementTree.parse(KUKA_URDF).getroot()
+    from evclock_sims._mujoco import model_path  # the installed scenarios' copy, as CI runs
+
+    robot = ElementTree.parse(model_path("kuka_iiwa/model.urdf")).getroot()
     return {
         f"{robot.get('name')}/{link.get('name')}"
         for link in robot.iter("link")
