@@ -36,6 +36,15 @@ other controllers. ``+ same work`` does the other controllers' work inline at th
 planner at 10 Hz): what the evclock environment does, without the loop. Reported: the
 median steps per CPU second and the median of the per-round ratios to the minimal one.
 
+**Breakdown** (printed under each evclock environment's hand-written rows): the CPU time of
+one evclock step split into parts, each the median over the rounds of the difference between two
+variants measured in the same round: ``mj_step only`` (the same number of ``mj_step`` calls on
+the same model, nothing else: the physics), ``+ same work`` minus that (the scenario's own work:
+action, observation, reward, ``terminated()``, its other controllers), ``loop only`` (the
+evclock environment's loop run for one period with the same calls, no Gymnasium side) minus
+``+ same work`` (the loop's wake-ups: resuming tasks, the rate loops, the clock), and the
+evclock step minus ``loop only`` (the Gymnasium side: ``check_action``, ``info``, the wrappers).
+
 **Vector** (``--vector``): ``gymnasium.make_vec(id, num_envs=N, vectorization_mode="async")``
 with 1, 2 and 4 worker processes, random actions, ended episodes reset in their workers
 (Gymnasium's autoreset): total steps per wall second (the median of the rounds, the worker
@@ -169,9 +178,12 @@ class HandWritten(gymnasium.Env[Any, Any]):
     (the cart-pole's monitor at every physics step and its judge at every tick, the KUKA's
     IK planner at 10 Hz)."""
 
-    def __init__(self, scenario_name: str, *, same_work: bool = False) -> None:
+    def __init__(
+        self, scenario_name: str, *, same_work: bool = False, physics_only: bool = False
+    ) -> None:
         self.name = scenario_name
         self.same_work = same_work
+        self.physics_only = physics_only
         self.scenario: Any = None
         self.reset(seed=0)
         self.observation_space = self.scenario.observation_space()
@@ -191,14 +203,19 @@ class HandWritten(gymnasium.Env[Any, Any]):
         self.hz = float(self.scenario.agent_hz)
         self.tick = 0
         self.physics_steps = 0
-        return self.scenario.observe(), {}
+        self.observation = self.scenario.observe()
+        return self.observation, {}
 
     def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
         scenario = self.scenario
-        scenario.act(np.asarray(action, dtype=np.float64))
         self.tick += 1
         # The k-th deadline: the first physics step at or after k / hz (exact integers).
         due = -((-self.tick * PHYSICS_HZ) // round(self.hz))
+        if self.physics_only:  # the mj_step calls alone: no action, observation or reward
+            mujoco.mj_step(self.model, self.data, due - self.physics_steps)
+            self.physics_steps = due
+            return self.observation, 0.0, False, False, {}
+        scenario.act(np.asarray(action, dtype=np.float64))
         if not self.same_work:
             mujoco.mj_step(self.model, self.data, due - self.physics_steps)
         elif self.name == "cartpole":
@@ -223,6 +240,39 @@ class HandWritten(gymnasium.Env[Any, Any]):
 
     def close(self) -> None:
         self.source.close()
+
+
+class LoopOnly:
+    """An evclock environment's step without the Gymnasium side: the action written
+    (unchecked), the loop run for one agent period, ``terminated()`` and ``reward()`` - the
+    same calls as ``+ same work``, with the event loop doing the scheduling."""
+
+    def __init__(self, env: Any) -> None:
+        self.env = env.unwrapped
+        self.action_space = env.action_space
+
+    def reset(self, *, seed: int | None = None) -> tuple[Any, dict[str, Any]]:
+        return self.env.reset(seed=seed)  # type: ignore[no-any-return]
+
+    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+        scenario = self.env.scenario
+        scenario.act(np.asarray(action, dtype=np.float64))
+        observation = self.env._episodes.run_period()
+        terminated = bool(scenario.terminated())
+        return observation, float(scenario.reward()), terminated, False, {}
+
+    def close(self) -> None:
+        pass
+
+
+PARTS = {
+    "physics (mj_step)": ("mj_step only", None),
+    "scenario's work": ("+ same work", "mj_step only"),
+    "loop wake-ups": ("loop only", "+ same work"),
+    "gym side": ("evclock", "loop only"),
+}
+"""The parts of an evclock step: the CPU time per step of a variant minus that of the one
+before it (medians of the per-round differences)."""
 
 
 BALANCE = np.array([0.0, 3.0, 0.0, 0.5])
@@ -265,10 +315,13 @@ def hand_written(steps: int, rounds: int) -> None:
     )
     print(f"{'environment':<22}{'variant':<14}{'steps/CPU s':>12}{'ratio':>8}")
     for env_id, name in EVCLOCK.items():
+        evclock_env = make(env_id, "mujoco", max_episode_seconds=1e6)
         envs = {
+            "mj_step only": HandWritten(name, physics_only=True),
             "hand-written": HandWritten(name),
             "+ same work": HandWritten(name, same_work=True),
-            "evclock": make(env_id, "mujoco", max_episode_seconds=1e6),
+            "loop only": LoopOnly(make(env_id, "mujoco", max_episode_seconds=1e6)),
+            "evclock": evclock_env,
         }
         rates: dict[str, list[float]] = {variant: [] for variant in envs}
         for _ in range(rounds):
@@ -280,8 +333,27 @@ def hand_written(steps: int, rounds: int) -> None:
             print(f"{env_id:<22}{variant:<14}{statistics.median(rate):>12,.0f}{ratio:>8.3f}")
         same = median_ratio(rates["evclock"], rates["+ same work"])
         print(f"{'':<22}evclock / hand-written with the same work: {same:.3f}")
+        breakdown(env_id, rates)
         for env in envs.values():
             env.close()
+        envs["loop only"].env.close()
+
+
+def breakdown(env_id: str, rates: dict[str, list[float]]) -> None:
+    """Where the CPU time of one evclock step sits: each part the difference of two measured
+    variants' CPU time per step, in the same rounds."""
+    us = {variant: [1e6 / rate for rate in rate_list] for variant, rate_list in rates.items()}
+    total = statistics.median(us["evclock"])
+    print(f"{'':<22}{env_id}'s step, by part (us per step, share of the evclock step):")
+    for part, (variant, before) in PARTS.items():
+        rounds = (
+            us[variant]
+            if before is None
+            else [a - b for a, b in zip(us[variant], us[before], strict=True)]
+        )
+        cost = statistics.median(rounds)
+        print(f"{'':<24}{part:<20}{cost:>9.1f}{cost / total:>8.1%}")
+    print(f"{'':<24}{'evclock step':<20}{total:>9.1f}")
 
 
 # --- async vector environments -------------------------------------------------------------
