@@ -396,25 +396,23 @@ def publish_every(
     return source.add_step_hook(publish_step, when="after")
 
 
+def _check_at_least_one(value: object, what: str, meaning: str) -> int:
+    """``value``, an int >= 1 (``meaning`` says what it counts, for the error)."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise InvalidTypeError(f"{what} must be an int, got {type(value).__name__}")
+    if value < 1:
+        raise InvalidArgumentError(f"{what} must be >= 1 ({meaning}), got {value}")
+    return value
+
+
 def check_decimation(decimation: object) -> int:
-    if isinstance(decimation, bool) or not isinstance(decimation, int):
-        raise InvalidTypeError(f"decimation must be an int, got {type(decimation).__name__}")
-    if decimation < 1:
-        raise InvalidArgumentError(
-            f"decimation must be >= 1 (1 = publish every step), got {decimation}"
-        )
-    return decimation
+    """A ``/clock`` decimation: an int >= 1."""
+    return _check_at_least_one(decimation, "decimation", "1 = publish every step")
 
 
 def check_subscriber_count(count: object, what: str = "count") -> int:
     """A number of subscribers to wait for: an int >= 1."""
-    if isinstance(count, bool) or not isinstance(count, int):
-        raise InvalidTypeError(f"{what} must be an int, got {type(count).__name__}")
-    if count < 1:
-        raise InvalidArgumentError(
-            f"{what} must be >= 1 (the /clock subscriptions to wait for), got {count}"
-        )
-    return count
+    return _check_at_least_one(count, what, "the /clock subscriptions to wait for")
 
 
 def check_wait_timeout(timeout: object, what: str = "timeout") -> float:
