@@ -6,7 +6,8 @@ import asyncio
 import collections
 import inspect
 import math
-from collections.abc import Awaitable, Callable
+import sys
+from collections.abc import AsyncGenerator, Awaitable, Callable
 from typing import TYPE_CHECKING, Literal
 
 from evclock._errors import (
@@ -200,7 +201,28 @@ class Tick:
         )
 
 
-_new_tick = object.__new__  # a Tick whose slots Rate.__anext__ fills
+_new_tick = object.__new__  # a Tick whose slots Rate._ticks fills
+
+
+def _untracked(ticks: AsyncGenerator[Tick, None]) -> AsyncGenerator[Tick, None]:
+    """``ticks``, a rate's async generator, outside asyncio's async-generator tracking.
+
+    A running loop's hooks (``sys.set_asyncgen_hooks``) register every new async generator
+    and, when one is collected unfinished (an ``async for`` left by ``break``), schedule
+    its ``aclose()`` as a new task: a task appearing whenever the garbage collector runs,
+    which would make the event order depend on it. A rate's generator holds nothing to
+    clean up (no ``finally``, no resource), and collected it closes at once as a plain
+    generator does. CPython reads the hooks once per async generator, when it is first
+    asked for an item: here, with none installed (that first request is dropped, never
+    started). The thread's hooks are restored before returning.
+    """
+    hooks = sys.get_asyncgen_hooks()
+    sys.set_asyncgen_hooks(firstiter=None, finalizer=None)
+    try:
+        ticks.__anext__()
+    finally:
+        sys.set_asyncgen_hooks(*hooks)
+    return ticks
 
 
 class LoopStats:
@@ -289,6 +311,8 @@ class Rate:
         self._start: int | None = None
         self._index = -1
         self._closed = False
+        #: The iterator :meth:`__anext__` and :meth:`sleep` advance (made on first use).
+        self._sleeper: AsyncGenerator[Tick, None] | None = None
         # On sim time the kernel's clock is read as a plain attribute (the hot path of every
         # rate loop: two reads per tick); other clocks through now_ns().
         self._core = getattr(clock, "core", None)
@@ -312,30 +336,56 @@ class Rate:
             raise NotRunningError("the rate has not started: iterate it first")
         return start + index * self._num // self._den
 
-    def __aiter__(self) -> Rate:
-        return self
+    def __aiter__(self) -> AsyncGenerator[Tick, None]:
+        """An iterator over the ticks: ``async for tick in rate``. It carries on the rate's
+        schedule: a second ``async for`` over the rate, or :meth:`sleep` in between,
+        continues from the last tick delivered."""
+        return _untracked(self._ticks())
 
-    async def __anext__(self) -> Tick:
-        if self._closed:
-            raise StopAsyncIteration
+    def __anext__(self) -> Awaitable[Tick]:
+        """The next tick (``await anext(rate)``; :meth:`sleep` awaits it)."""
+        ticks = self._sleeper
+        if ticks is None or ticks.ag_frame is None:  # first use, or ended by an exception
+            ticks = self._sleeper = _untracked(self._ticks())
+        elif ticks.ag_running:  # another task is waiting on it: this one gets its own
+            ticks = _untracked(self._ticks())
+        return ticks.__anext__()
+
+    async def _ticks(self) -> AsyncGenerator[Tick, None]:
+        """The ticks: the body of every iteration of this rate, one per resumption.
+
+        An async generator, so that a tick costs no coroutine of its own: the same frame
+        waits and resumes at every deadline (docs/architecture.md, "How a wake-up
+        travels"). Each iteration reads the schedule (``_start``, ``_index``) from the rate
+        and writes it back, so that several iterators over one rate share it; the time of a
+        tick is read when its task resumes (``Tick.actual``: when it was delivered).
+        """
         clock = self._clock
         core = self._core
-        now = clock.now_ns() if core is None else core.now_ns
-        start = self._start
-        if start is None:
-            self._start, self._index = now, 0
-            return self._tick(0, now, now, 0)
-        index = self._index + 1
-        deadline = start + index * self._num // self._den
-        if now < deadline:
+        num, den, clock_type = self._num, self._den, self._clock_type
+        sleep_until_ns = clock.sleep_until_ns
+        while not self._closed:
+            now = clock.now_ns() if core is None else core.now_ns
+            start = self._start
+            if start is None:
+                self._start, self._index = now, 0
+                yield self._tick(0, now, now, 0)
+                continue
+            index = self._index + 1
+            deadline = start + index * num // den
+            if now >= deadline:  # late: the overrun policy decides
+                yield self._late_tick(start, index, deadline, now)
+                continue
             try:
-                await clock.sleep_until_ns(deadline)
+                await sleep_until_ns(deadline)
             except ClockJumpedError:
-                return self._reanchor()
+                yield self._reanchor()
+                continue
             now = clock.now_ns() if core is None else core.now_ns
             if now < deadline:
                 # Woken as due, then the clock jumped back before this task ran.
-                return self._reanchor()
+                yield self._reanchor()
+                continue
             # The common case, on time or late by less than a period: _tick and
             # LoopStats.record inlined (every rate loop's hot path).
             self._index = index
@@ -353,8 +403,11 @@ class Rate:
             tick.expected_ns = deadline
             tick.actual_ns = now
             tick.missed = 0
-            tick._clock_type = self._clock_type
-            return tick
+            tick._clock_type = clock_type
+            yield tick
+
+    def _late_tick(self, start: int, index: int, deadline: int, now: int) -> Tick:
+        """The tick for deadline ``index`` reached late (at ``now``), per the policy."""
         passed = last_deadline_index(start, now, self._num, self._den)
         if self._policy == "catch_up":
             return self._tick(index, deadline, now, 0)
