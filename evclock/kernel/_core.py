@@ -52,7 +52,6 @@ from evclock._cpython import SET_RESULT_UNLESS_CANCELLED, running_loop
 from evclock._errors import ClockJumpedError, InvalidArgumentError
 from evclock.kernel._jumps import JumpHandle, TimeJump
 from evclock.kernel._pacing import DEFAULT_MAX_LAG, Pacer
-from evclock.kernel._rate import TickWait
 from evclock.kernel._source import TimeSource
 from evclock.kernel._virtual import VirtualTimeSource
 from evclock.time._time import (
@@ -484,21 +483,9 @@ class SimCore:
         (every future resolved first, so each step sees the others' futures done, as on
         stock asyncio).
         """
-        in_place: list[tuple[Any, Any, asyncio.Future[Any] | None]] | None = None if ready else []
+        in_place: list[tuple[Any, Any, asyncio.Future[Any]]] | None = None if ready else []
         for obj in due:
             if obj is _STOP:
-                continue
-            if type(obj) is TickWait:
-                # a rate's wait: its step (fill the tick, resume the task) goes where the
-                # task's wake-up would
-                if obj.fut.done():
-                    continue
-                step = obj.resolve()
-                if step is not None:
-                    if in_place is None:
-                        ready.append(asyncio.Handle(step[0], (), self.host, step[1]))  # type: ignore[arg-type]
-                    else:
-                        in_place.append((step[0], step[1], None))
                 continue
             if not isinstance(obj, _TimerHandle):
                 if obj.done():
@@ -535,24 +522,19 @@ class SimCore:
         """Queue collected wake-ups at the end of the ready queue, in order."""
         loop = self.host
         for callback, ctx, fut in wakeups:
-            args = () if fut is None else (fut,)  # None: a rate's step (TickWait.resolve)
-            ready.append(asyncio.Handle(callback, args, loop, ctx))  # type: ignore[arg-type]
+            ready.append(asyncio.Handle(callback, (fut,), loop, ctx))  # type: ignore[arg-type]
 
     def _run_wakeups(self, wakeups: list[tuple[Any, Any, Any]], ready: Any) -> None:
         """Run collected wake-ups in place, in order (what would run next anyway); if one
         raises SystemExit or KeyboardInterrupt, the rest are queued first, as they were."""
         for i, (callback, ctx, fut) in enumerate(wakeups):
             try:
-                if fut is None:
-                    ctx.run(callback)  # a rate's step (TickWait.resolve)
-                else:
-                    ctx.run(callback, fut)
+                ctx.run(callback, fut)
             except (SystemExit, KeyboardInterrupt):
                 rest = wakeups[i + 1 :]
                 loop = self.host
                 for callback, ctx, fut in reversed(rest):
-                    args = () if fut is None else (fut,)
-                    ready.appendleft(asyncio.Handle(callback, args, loop, ctx))  # type: ignore[arg-type]
+                    ready.appendleft(asyncio.Handle(callback, (fut,), loop, ctx))  # type: ignore[arg-type]
                 raise
             except BaseException as exc:
                 self._report_wakeup_error(exc)
@@ -652,7 +634,6 @@ class SimCore:
         at = self.at
         virtual = self._virtual
         fut: Any = None
-        tick_wait: TickWait | None = None  # a rate's wait: its tick is the result
         # The common case first: one task waits alone at the next deadline (deadlines are
         # distinct), later than now, on the default source, on a clock.sleep future or on
         # asyncio.sleep's timer. A done future has no callbacks, a cancelled timer no
@@ -663,9 +644,6 @@ class SimCore:
                 obj = at[when]
                 if type(obj) is _Future:
                     fut, result = obj, None
-                elif type(obj) is TickWait:
-                    tick_wait = obj
-                    fut = obj.fut
                 elif (
                     isinstance(obj, _TimerHandle) and obj._callback is _SET_RESULT_UNLESS_CANCELLED
                 ):
@@ -681,9 +659,7 @@ class SimCore:
                         virtual.now_ns = self.now_ns = when
                         _heappop(heap)
                         del at[when]
-                        if tick_wait is not None:
-                            result = tick_wait.tick()  # the task resumes at once, below
-                        elif fut is not obj:
+                        if fut is not obj:
                             obj._scheduled = False
         if fut is None:
             # Every other case: timers, buckets, dead entries, stepping sources, entries
@@ -723,12 +699,8 @@ class SimCore:
             del at[when]
             # Deadlines are distinct in the heap: ``obj`` is alone unless it was overdue.
             if type(obj) is not _Bucket and (not heap or heap[0] > now):
-                tick_wait = None
                 if type(obj) is _Future:
                     fut, result = obj, None
-                elif type(obj) is TickWait:
-                    tick_wait = obj
-                    fut = obj.fut
                 elif isinstance(obj, _TimerHandle):
                     if obj._callback is _SET_RESULT_UNLESS_CANCELLED:
                         fut, result = obj._args  # asyncio.sleep's future
@@ -740,9 +712,7 @@ class SimCore:
                     except (TypeError, ValueError):
                         fut = None  # several waiters, none, or done: fire() below
                     else:
-                        if tick_wait is not None:
-                            result = tick_wait.tick()  # the task resumes at once, below
-                        elif fut is not obj:
+                        if fut is not obj:
                             obj._scheduled = False
             if fut is None:
                 self.fire(self._pop_due(now, list(obj) if type(obj) is _Bucket else [obj]), ready)

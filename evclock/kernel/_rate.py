@@ -4,14 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import functools
-import heapq
 import inspect
 import math
 from collections.abc import Awaitable, Callable
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Literal
 
-from evclock._cpython import running_loop
 from evclock._errors import (
     ClockJumpedError,
     InvalidArgumentError,
@@ -35,7 +32,6 @@ if TYPE_CHECKING:
     from fractions import Fraction
 
     from evclock.kernel._clock import Clock
-    from evclock.kernel._core import SimCore
 
 Policy = Literal["skip", "catch_up", "reset"]
 _POLICIES: tuple[str, ...] = ("skip", "catch_up", "reset")
@@ -204,118 +200,7 @@ class Tick:
         )
 
 
-_new_tick = object.__new__  # a Tick whose slots Rate._deliver fills
-
-#: Whether a rate's on-time ticks on a running SimEventLoop are the kernel's waits
-#: (:class:`TickWait`); False: every tick takes ``Rate._next_tick``'s coroutine, as in
-#: evclock 0.3.0. For the tests that compare the two (tests/kernel/test_wake_paths.py).
-_KERNEL_TICKS = True
-
-_Future = asyncio.Future
-_running_loop = running_loop
-_heappush = heapq.heappush
-
-
-def wait_for_tick(core: SimCore, rate: Rate, index: int, deadline: int) -> asyncio.Future[Tick]:
-    """Schedule ``rate``'s wait for its deadline ``index`` (``deadline`` ns, later than now)
-    in the kernel of the running SimEventLoop: the future the task awaits, resolved with
-    the tick (see :class:`TickWait`)."""
-    fut: asyncio.Future[Tick] = _Future()  # on the running loop, found in C
-    # TickWait.__init__, inlined (a class's Python __init__ is a frame entered from C)
-    wait = _new_wait(TickWait)
-    wait.fut = fut
-    wait.rate = rate
-    wait.index = index
-    wait.deadline = deadline
-    if core.at.setdefault(deadline, wait) is wait:  # SimCore.schedule, inlined
-        _heappush(core.heap, deadline)
-    else:
-        core.schedule(deadline, wait)
-    if deadline < core.notify_before:
-        core.host._interrupt_wait()
-    return fut
-
-
-_new_wait = object.__new__
-
-
-class TickWait:
-    """A rate loop's wait for its next deadline, in the kernel's schedule: a tick with no
-    coroutine of its own.
-
-    The task awaits :attr:`fut` directly. When the wait ends, the kernel resolves it with
-    the tick, filled (``Rate._deliver``) as the task resumes - not before: so a tick reads
-    the time at which its task runs, as a coroutine resumed by a plain future would, and a
-    jump or a ``cancel()`` that comes between the wake-up and the task's turn is seen. The
-    kernel's in-place wake-up runs the task at once (:meth:`tick`); a wake-up that waits
-    its turn behind others runs :meth:`resolve`'s step there. ``done``, ``cancel``,
-    ``set_result`` and ``set_exception`` are the future's, as the kernel's other entries
-    (futures) have them; a :class:`ClockJumpedError` restarts the schedule instead of
-    reaching the task, as the coroutine caught it.
-    """
-
-    __slots__ = ("deadline", "fut", "index", "rate")
-
-    def __init__(self, fut: asyncio.Future[Tick], rate: Rate, index: int, deadline: int) -> None:
-        self.fut = fut
-        self.rate = rate
-        self.index = index
-        self.deadline = deadline
-
-    def tick(self, jumped: bool = False) -> Tick:
-        """The tick, filled now: for a task resumed at once."""
-        return self.rate._deliver(None, self.index, self.deadline, jumped)
-
-    def resolve(self, jumped: bool = False) -> tuple[Callable[[], None], Any] | None:
-        """Resolve the future for a task that resumes later, in its turn: returns the step
-        to run where the task's wake-up would (it fills the tick, then resumes the task)
-        and its context; None when no lone task waits on the future (it is resolved
-        with a tick filled now)."""
-        fut = self.fut
-        callbacks = fut._callbacks  # type: ignore[attr-defined]
-        task = None
-        if callbacks and len(callbacks) == 1:
-            ((callback, context),) = callbacks
-            task = getattr(callback, "__self__", None)
-        if not isinstance(task, asyncio.Task):
-            fut.set_result(self.tick(jumped))
-            return None
-        fut.remove_done_callback(callback)
-        tick: Tick = _new_tick(Tick)
-        fut.set_result(tick)
-        return functools.partial(self._resume, task, tick, callback, jumped), context
-
-    def _resume(self, task: asyncio.Task[Any], tick: Tick, callback: Any, jumped: bool) -> None:
-        # The task's turn: it receives the tick unless a cancel() came first (then it gets
-        # CancelledError and the rate counts no tick, as with a coroutine per tick).
-        if not task._must_cancel:  # type: ignore[attr-defined]
-            self.rate._deliver(tick, self.index, self.deadline, jumped)
-        callback(self.fut)
-
-    def done(self) -> bool:
-        """Whether the wait ended (its future is done)."""
-        return self.fut.done()
-
-    def cancel(self, msg: Any = None) -> bool:
-        """Cancel the wait's future."""
-        return self.fut.cancel(msg)
-
-    def set_result(self, _result: object) -> None:
-        """The deadline came: resolve the future with the tick (:meth:`resolve`)."""
-        self._schedule(self.resolve())
-
-    def set_exception(self, exc: BaseException) -> None:
-        """End the wait with ``exc``; a :class:`ClockJumpedError` ends it with tick 0 of a
-        schedule restarted at the new time instead."""
-        if isinstance(exc, ClockJumpedError):
-            self._schedule(self.resolve(jumped=True))
-        else:
-            self.fut.set_exception(exc)
-
-    def _schedule(self, step: tuple[Callable[[], None], Any] | None) -> None:
-        # where the future's own callbacks would go: the end of its loop's ready queue
-        if step is not None:
-            self.fut.get_loop().call_soon(step[0], context=step[1])
+_new_tick = object.__new__  # a Tick whose slots Rate.__anext__ fills
 
 
 class LoopStats:
@@ -430,61 +315,7 @@ class Rate:
     def __aiter__(self) -> Rate:
         return self
 
-    def __anext__(self) -> Awaitable[Tick]:
-        """The next tick: what ``async for`` and :meth:`sleep` await.
-
-        On a running :class:`~evclock.SimEventLoop`, a tick on time is a wait in the
-        kernel's schedule whose future the kernel resolves with the tick as the task
-        resumes (:class:`~evclock.kernel._core.TickWait`): no coroutine per tick. The first
-        tick, late ticks and other clocks take :meth:`_next_tick`, which computes the same
-        ticks in a coroutine.
-        """
-        core = self._core
-        if core is not None and not self._closed and _KERNEL_TICKS:
-            start = self._start
-            loop = core.future_loop
-            if start is not None and loop is not None and _running_loop() is loop:
-                index = self._index + 1
-                deadline = start + index * self._num // self._den
-                if core.now_ns < deadline <= MAX_TIME_NS:
-                    return wait_for_tick(core, self, index, deadline)
-        return self._next_tick()
-
-    def _deliver(self, tick: Tick | None, index: int, deadline: int, jumped: bool) -> Tick:
-        """Fill ``tick`` (None: a new one), the tick a task resumed by the kernel for
-        deadline ``index`` receives, as :meth:`_next_tick` computes it after its wait: at
-        the current time; after a jump (``jumped``: the wait was ended by one, or time went
-        back to before the deadline since), tick 0 of a schedule restarted now."""
-        if tick is None:
-            tick = _new_tick(Tick)
-        now = self._core.now_ns  # type: ignore[union-attr]  # (sim clocks only)
-        tick._clock_type = self._clock_type
-        tick.missed = 0
-        if jumped or now < deadline:
-            self._start, self._index = now, 0
-            self.stats.record(0, 0)
-            tick.index = 0
-            tick.expected_ns = tick.actual_ns = now
-            return tick
-        # _next_tick's common case (LoopStats.record inlined, as there)
-        self._index = index
-        stats = self.stats
-        stats.ticks += 1
-        lateness = now - deadline
-        if lateness:
-            stats.total_lateness_ns += lateness
-            if lateness > stats.max_lateness_ns:
-                stats.max_lateness_ns = lateness
-        stats.recent_lateness_ns.append(lateness)
-        tick.index = index
-        tick.expected_ns = deadline
-        tick.actual_ns = now
-        return tick
-
-    async def _next_tick(self) -> Tick:
-        """The next tick, computed in a coroutine: the first tick, late ticks, waits on a
-        clock that is not a running SimEventLoop's (wall time, :class:`~evclock.SimDriver`)
-        and a closed rate. ``_deliver`` computes the on-time tick the same way."""
+    async def __anext__(self) -> Tick:
         if self._closed:
             raise StopAsyncIteration
         clock = self._clock
@@ -544,9 +375,9 @@ class Rate:
         self.stats.record(actual - expected, missed)
         return Tick(index, expected, actual, missed, self._clock_type)
 
-    def sleep(self) -> Awaitable[Tick]:
-        """Wait for the next tick (the ROS ``Rate.sleep`` style of use): ``await rate.sleep()``."""
-        return self.__anext__()
+    async def sleep(self) -> Tick:
+        """Wait for the next tick (the ROS ``Rate.sleep`` style of use)."""
+        return await self.__anext__()
 
     def close(self) -> None:
         """End the iteration: the next ``__anext__`` raises StopAsyncIteration."""
