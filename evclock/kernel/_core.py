@@ -267,6 +267,10 @@ class SimCore:
     :meth:`call_exception_handler`.
     """
 
+    #: Whether kernels made from now on wake tasks in place (the default); False: through
+    #: asyncio's own path. tests/kernel/test_wake_paths.py runs its corpus both ways.
+    wake_in_place: bool = True
+
     def __init__(
         self,
         source: TimeSource,
@@ -310,6 +314,12 @@ class SimCore:
         # (wake_next) moves it itself instead of calling its advance() (exact type only: a
         # subclass may override advance()).
         self._virtual = source if type(source) is VirtualTimeSource else None
+        #: Whether wake-ups run in place (see :meth:`wake_next` and :meth:`fire`); False:
+        #: every wake-up takes asyncio's own path (the future's callbacks scheduled with
+        #: ``call_soon``, run from the ready queue) - for the tests that compare the two.
+        self._in_place = self.wake_in_place
+        if not self._in_place:
+            self._virtual = None  # (the short path's in-place wake-up is taken only with it)
         #: Whether the short path (:meth:`wake_next`) may be taken, as far as the kernel
         #: knows: no pacing and no external source (the host adds what it sees outside).
         self.short_path = False
@@ -483,7 +493,9 @@ class SimCore:
         (every future resolved first, so each step sees the others' futures done, as on
         stock asyncio).
         """
-        in_place: list[tuple[Any, Any, asyncio.Future[Any]]] | None = None if ready else []
+        in_place: list[tuple[Any, Any, asyncio.Future[Any]]] | None = (
+            None if ready or not self._in_place else []
+        )
         for obj in due:
             if obj is _STOP:
                 continue
@@ -698,7 +710,7 @@ class SimCore:
             _heappop(heap)
             del at[when]
             # Deadlines are distinct in the heap: ``obj`` is alone unless it was overdue.
-            if type(obj) is not _Bucket and (not heap or heap[0] > now):
+            if type(obj) is not _Bucket and (not heap or heap[0] > now) and self._in_place:
                 if type(obj) is _Future:
                     fut, result = obj, None
                 elif isinstance(obj, _TimerHandle):

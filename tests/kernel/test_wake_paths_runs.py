@@ -1,0 +1,114 @@
+"""Whole programs with the kernel's wake-up in place and through asyncio's own path (see
+tests/kernel/test_wake_paths.py): every bundled scenario on each of its engines, recorded
+(every deterministic message, bit for bit) with its report, and the examples that run
+sleeps, rates and timers, by what they print."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_wake_paths import wake_in_place
+
+from evclock.tools._runs import RunReport, run_scenario
+from evclock.tools._scenarios import (
+    engines_of,
+    installed_engines,
+    load_scenario,
+    registered_scenarios,
+)
+from evclock.tools._trace import first_divergence, read_trace
+
+ROOT = Path(__file__).resolve().parents[2]
+#: Sim seconds of each scenario run: every loop of every scenario ticks many times.
+UNTIL = 3.0
+
+
+def scenario_cases() -> list[Any]:
+    cases = []
+    for scenario in registered_scenarios():
+        for engine in engines_of(load_scenario(scenario.name)):
+            marks = [pytest.mark.pybullet] if engine == "pybullet" else []
+            cases.append(
+                pytest.param(scenario.name, engine, id=f"{scenario.name}-{engine}", marks=marks)
+            )
+    return cases
+
+
+def outcome(report: RunReport) -> dict[str, Any]:
+    """What a run reports that depends on sim time alone (not wall time)."""
+    return {
+        "success": report.success,
+        "finished": report.finished,
+        "sim_time_s": report.sim_time_s,
+        "summary": report.summary,
+        "loops": [(loop.name, loop.hz, loop.stats, loop.on_physics_steps) for loop in report.loops],
+        "final_state": list(report.final_state),
+    }
+
+
+@pytest.mark.parametrize(("scenario", "engine"), scenario_cases())
+def test_a_scenario_runs_the_same_with_wake_ups_in_place_or_not(
+    scenario: str, engine: str, tmp_path: Path
+) -> None:
+    if engine not in installed_engines():
+        pytest.skip(f"{engine} is not installed for this Python")
+    outcomes, traces = [], []
+    for on in (True, False):
+        path = tmp_path / f"{scenario}-{engine}-{on}.mcap"
+        with wake_in_place(on):
+            report = run_scenario(scenario, seed=7, until=UNTIL, engine=engine, record=path)
+        outcomes.append(outcome(report))
+        traces.append(read_trace(path))
+    assert outcomes[0] == outcomes[1]
+    assert first_divergence(traces[0], traces[1]) is None
+    assert len([m for m in traces[0].messages if m.deterministic]) > 100
+
+
+#: Examples that run sleeps, rates, timers or jumps on sim time and print only what sim
+#: time decides.
+EXAMPLES = [
+    "sleep_and_rate.py",
+    "controller.py",
+    "reset_and_jumps.py",
+    "shuttle_scenario.py",
+    "custom_stepping_source.py",
+    "patrol_controller.py",
+    "fusion_pipeline.py",
+]
+
+#: Runs an example as ``python examples/NAME`` would, with the kernel's switch set first.
+RUNNER = """
+import runpy, sys
+from evclock.kernel._core import SimCore
+SimCore.wake_in_place = sys.argv[1] == "on"
+path = sys.argv[2]
+sys.argv = [path]
+runpy.run_path(path, run_name="__main__")
+"""
+
+
+def example_output(name: str, on: bool) -> str:
+    env = {k: v for k, v in os.environ.items() if k != "EVCLOCK_USE_SIM_TIME"}
+    proc = subprocess.run(
+        [sys.executable, "-c", RUNNER, "on" if on else "off", str(ROOT / "examples" / name)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        check=False,
+    )
+    assert proc.returncode == 0, f"{name}: {proc.stdout}{proc.stderr}"
+    return proc.stdout
+
+
+@pytest.mark.parametrize("name", EXAMPLES)
+def test_an_example_prints_the_same_with_wake_ups_in_place_or_not(name: str) -> None:
+    printed = example_output(name, True)
+    assert printed == example_output(name, False)
+    assert printed.strip()
