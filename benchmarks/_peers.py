@@ -198,6 +198,46 @@ def clock_rate(loops: Loops) -> None:
     evclock.run(main())
 
 
+def rate_deadlines(loops: Loops) -> None:
+    """What a ``clock.rate`` tick costs without its ``Tick`` and statistics: each task
+    awaits ``clock.sleep_until_ns`` at the rate's exact deadlines (tick 0 at the start)."""
+    _rate_deadlines(loops, per_tick_coroutine=False)
+
+
+def rate_deadlines_coroutine(loops: Loops) -> None:
+    """:func:`rate_deadlines` with each wait inside a coroutine of its own, made per tick
+    (as ``Rate.__anext__`` is): what that coroutine costs."""
+    _rate_deadlines(loops, per_tick_coroutine=True)
+
+
+def _rate_deadlines(loops: Loops, per_tick_coroutine: bool) -> None:
+    from fractions import Fraction
+
+    import evclock
+
+    async def every(clock: evclock.Clock, hz: float, ticks: int) -> None:
+        period = Fraction(10**9) / Fraction(hz)  # Rate's exact period
+        num, den = period.numerator, period.denominator
+        start = clock.now_ns()
+        sleep_until_ns = clock.sleep_until_ns
+
+        async def one(deadline: int) -> None:
+            await sleep_until_ns(deadline)
+
+        for index in range(1, ticks):
+            deadline = start + index * num // den
+            if per_tick_coroutine:
+                await one(deadline)
+            else:
+                await sleep_until_ns(deadline)
+
+    async def main() -> None:
+        clock = evclock.clock()
+        await asyncio.gather(*(every(clock, hz, ticks) for hz, ticks in loops))
+
+    evclock.run(main())
+
+
 def asyncio_rate_sim(loops: Loops) -> None:
     """A drift-free rate loop written with ``asyncio.sleep`` and ``loop.time()``, on
     evclock's sim loop (tick 0 at the start, tick k at ``start + k / hz``)."""

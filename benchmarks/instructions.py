@@ -155,6 +155,8 @@ VARIANTS: dict[str, Callable[..., Any]] = {
     "asyncio.sleep(0) per tick, stock": peers.sleep0_rates,
     "asyncio.sleep(0) per tick, uvloop": peers.sleep0_rates_uvloop,
     "clock.rate": peers.clock_rate,
+    "rate deadlines, no Tick": peers.rate_deadlines,
+    "rate deadlines, coroutine per tick": peers.rate_deadlines_coroutine,
     "asyncio.sleep rate, sim loop": peers.asyncio_rate_sim,
     "SimPy rate": peers.simpy_rate,
     "asyncio.timeout, instant stock": peers.timeout_instant,

@@ -95,13 +95,23 @@ FANOUT = (
 )
 RATES = (
     "clock.rate",
+    # where a tick's cost sits: its deadlines alone, then in a coroutine per tick
+    "rate deadlines, no Tick",
+    "rate deadlines, coroutine per tick",
     "asyncio.sleep rate, sim loop",
     "SimPy rate",
     "asyncio.sleep(0) per tick, stock",
 )
 SIMPY = {"fanout": "SimPy env.timeout", "rates": "SimPy rate"}
 #: The variants that run evclock's code (run again for each ``--also`` tree).
-EVCLOCK = ("clock.sleep", "asyncio.sleep, sim loop", "clock.rate", "asyncio.sleep rate, sim loop")
+EVCLOCK = (
+    "clock.sleep",
+    "asyncio.sleep, sim loop",
+    "clock.rate",
+    "rate deadlines, no Tick",
+    "rate deadlines, coroutine per tick",
+    "asyncio.sleep rate, sim loop",
+)
 
 
 @dataclass(frozen=True)
