@@ -70,15 +70,16 @@ def test_a_scenario_runs_the_same_with_wake_ups_in_place_or_not(
 
 
 #: Examples that run sleeps, rates, timers or jumps on sim time and print only what sim
-#: time decides.
+#: time decides (some on PyBullet).
 EXAMPLES = [
     "sleep_and_rate.py",
     "controller.py",
-    "reset_and_jumps.py",
-    "shuttle_scenario.py",
     "custom_stepping_source.py",
     "patrol_controller.py",
-    "fusion_pipeline.py",
+    *(
+        pytest.param(name, marks=pytest.mark.pybullet)
+        for name in ("reset_and_jumps.py", "shuttle_scenario.py", "fusion_pipeline.py")
+    ),
 ]
 
 #: Runs an example as ``python examples/NAME`` would, with the kernel's switch set first.
