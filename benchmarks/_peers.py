@@ -62,6 +62,18 @@ def asyncio_sleep_sim(rows: Rows) -> None:
     _gather_on(_sim_run, worker, rows)
 
 
+def asyncio_sleep_instant(rows: Rows) -> None:
+    """``await asyncio.sleep(d)`` on stock asyncio with instant time (:class:`InstantTimeLoop`):
+    what stock asyncio's own timers cost a timed sleep, with no waiting in between."""
+
+    async def worker(durations: list[float]) -> None:
+        sleep = asyncio.sleep
+        for d in durations:
+            await sleep(d)
+
+    _gather_on(_instant_run, worker, rows)
+
+
 def sleep0_fanout(rows: Rows) -> None:
     """The floor: ``await asyncio.sleep(0)`` once per duration, on a stock loop."""
     _gather_on(asyncio.run, _sleep0_worker, rows)

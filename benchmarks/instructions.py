@@ -151,6 +151,7 @@ VARIANTS: dict[str, Callable[..., Any]] = {
     "least future-based sleep": peers.least_future_sleep,
     "clock.sleep": peers.clock_sleep,
     "asyncio.sleep, sim loop": peers.asyncio_sleep_sim,
+    "asyncio.sleep, instant stock": peers.asyncio_sleep_instant,
     "SimPy env.timeout": peers.simpy_sleep,
     "asyncio.sleep(0) per tick, stock": peers.sleep0_rates,
     "asyncio.sleep(0) per tick, uvloop": peers.sleep0_rates_uvloop,

@@ -47,6 +47,7 @@ import instructions as ins
 FANOUT = (
     "clock.sleep",
     "asyncio.sleep, sim loop",
+    "asyncio.sleep, instant stock",  # stock asyncio's own timers, time jumping between them
     "SimPy env.timeout",
     "asyncio.sleep(0), stock loop",
     "asyncio.sleep(0), uvloop",

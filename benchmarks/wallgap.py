@@ -90,6 +90,7 @@ FANOUT = (
     "least future-based sleep",
     "clock.sleep",
     "asyncio.sleep, sim loop",
+    "asyncio.sleep, instant stock",  # stock asyncio's own timers, time jumping between them
     "SimPy env.timeout",
     "asyncio.sleep(0), stock loop",
 )
