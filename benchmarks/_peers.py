@@ -53,25 +53,19 @@ def clock_sleep(rows: Rows) -> None:
 
 def asyncio_sleep_sim(rows: Rows) -> None:
     """``await asyncio.sleep(d)`` on evclock's sim loop."""
-
-    async def worker(durations: list[float]) -> None:
-        sleep = asyncio.sleep
-        for d in durations:
-            await sleep(d)
-
-    _gather_on(_sim_run, worker, rows)
+    _gather_on(_sim_run, _asyncio_sleep_worker, rows)
 
 
 def asyncio_sleep_instant(rows: Rows) -> None:
     """``await asyncio.sleep(d)`` on stock asyncio with instant time (:class:`InstantTimeLoop`):
     what stock asyncio's own timers cost a timed sleep, with no waiting in between."""
+    _gather_on(_instant_run, _asyncio_sleep_worker, rows)
 
-    async def worker(durations: list[float]) -> None:
-        sleep = asyncio.sleep
-        for d in durations:
-            await sleep(d)
 
-    _gather_on(_instant_run, worker, rows)
+async def _asyncio_sleep_worker(durations: list[float]) -> None:
+    sleep = asyncio.sleep
+    for d in durations:
+        await sleep(d)
 
 
 def sleep0_fanout(rows: Rows) -> None:
@@ -233,15 +227,12 @@ def _rate_deadlines(loops: Loops, per_tick_coroutine: bool) -> None:
         start = clock.now_ns()
         sleep_until_ns = clock.sleep_until_ns
 
-        async def one(deadline: int) -> None:
+        async def in_a_coroutine(deadline: int) -> None:
             await sleep_until_ns(deadline)
 
+        wait = in_a_coroutine if per_tick_coroutine else sleep_until_ns
         for index in range(1, ticks):
-            deadline = start + index * num // den
-            if per_tick_coroutine:
-                await one(deadline)
-            else:
-                await sleep_until_ns(deadline)
+            await wait(start + index * num // den)
 
     async def main() -> None:
         clock = evclock.clock()
