@@ -21,12 +21,27 @@ EXAMPLES = ROOT / "examples"
 TIMEOUT = 300  # wall seconds
 
 
-def run_example(name: str, *args: str, **env: str) -> subprocess.CompletedProcess[str]:
-    """Run ``examples/<name> <args>``; the finished process (fails on a non-zero exit)."""
+#: ``python -c`` code that runs ``argv[1]``, then the file ``argv[2]`` as ``__main__`` with
+#: the arguments after it.
+_RUN_AFTER = (
+    "import runpy, sys; exec(sys.argv[1]); sys.argv = sys.argv[2:]; "
+    "runpy.run_path(sys.argv[0], run_name='__main__')"
+)
+
+
+def run_example(
+    name: str, *args: str, before: str = "", **env: str
+) -> subprocess.CompletedProcess[str]:
+    """Run ``examples/<name> <args>``; the finished process (fails on a non-zero exit).
+
+    ``before``: Python code the process runs first (a test's switch, set before the example
+    imports anything); the example then runs as its file would.
+    """
     environ = {k: v for k, v in os.environ.items() if k != "EVCLOCK_USE_SIM_TIME"}
     environ.update(env)
+    script = [str(EXAMPLES / name), *args]
     proc = subprocess.run(
-        [sys.executable, str(EXAMPLES / name), *args],
+        [sys.executable, *(("-c", _RUN_AFTER, before) if before else ()), *script],
         cwd=ROOT,
         env=environ,
         capture_output=True,

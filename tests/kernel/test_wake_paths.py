@@ -341,20 +341,6 @@ async def a_tick_future_used_as_a_future(trace: Trace) -> object:
     return stats_row(rate)
 
 
-PROGRAMS = [
-    shared_deadlines,
-    cancel_between_wake_and_turn,
-    cancel_then_uncancel_before_the_turn,
-    jumps_around_ticks,
-    jump_ends_the_wait_of_a_rate_and_a_sleeper,
-    cancellation_storm,
-    timeouts_and_groups,
-    cancel_from_another_thread,
-    policies_and_sharing,
-    a_tick_future_used_as_a_future,
-]
-
-
 async def sleepers_of_every_kind(trace: Trace) -> object:
     """clock.sleep, sleep_until, asyncio.sleep, call_later and a future shared by several
     waiters, due alone and together."""
@@ -440,7 +426,21 @@ async def time_jumps(trace: Trace) -> object:
     return [t.cancelled() for t in tasks]
 
 
-PROGRAMS += [sleepers_of_every_kind, self_cancel_and_timeouts, time_jumps]
+PROGRAMS = [
+    shared_deadlines,
+    cancel_between_wake_and_turn,
+    cancel_then_uncancel_before_the_turn,
+    jumps_around_ticks,
+    jump_ends_the_wait_of_a_rate_and_a_sleeper,
+    cancellation_storm,
+    timeouts_and_groups,
+    cancel_from_another_thread,
+    policies_and_sharing,
+    a_tick_future_used_as_a_future,
+    sleepers_of_every_kind,
+    self_cancel_and_timeouts,
+    time_jumps,
+]
 
 
 @pytest.mark.parametrize("program", PROGRAMS, ids=[p.__name__ for p in PROGRAMS])

@@ -5,13 +5,11 @@ sleeps, rates and timers, by what they print."""
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import pytest
+from _examples import run_example
 from test_wake_paths import wake_in_place
 
 from evclock.tools._runs import RunReport, run_scenario
@@ -23,7 +21,6 @@ from evclock.tools._scenarios import (
 )
 from evclock.tools._trace import first_divergence, read_trace
 
-ROOT = Path(__file__).resolve().parents[2]
 #: Sim seconds of each scenario run: every loop of every scenario ticks many times.
 UNTIL = 3.0
 
@@ -82,30 +79,12 @@ EXAMPLES = [
     ),
 ]
 
-#: Runs an example as ``python examples/NAME`` would, with the kernel's switch set first.
-RUNNER = """
-import runpy, sys
-from evclock.kernel._core import SimCore
-SimCore.wake_in_place = sys.argv[1] == "on"
-path = sys.argv[2]
-sys.argv = [path]
-runpy.run_path(path, run_name="__main__")
-"""
+#: Sets the kernel's switch in an example's process, before the example runs.
+SWITCH = "from evclock.kernel._core import SimCore; SimCore.wake_in_place = {on}"
 
 
 def example_output(name: str, on: bool) -> str:
-    env = {k: v for k, v in os.environ.items() if k != "EVCLOCK_USE_SIM_TIME"}
-    proc = subprocess.run(
-        [sys.executable, "-c", RUNNER, "on" if on else "off", str(ROOT / "examples" / name)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        check=False,
-    )
-    assert proc.returncode == 0, f"{name}: {proc.stdout}{proc.stderr}"
-    return proc.stdout
+    return run_example(name, before=SWITCH.format(on=on)).stdout
 
 
 @pytest.mark.parametrize("name", EXAMPLES)
