@@ -248,6 +248,7 @@ class LoopOnly:
     same calls as ``+ same work``, with the event loop doing the scheduling."""
 
     def __init__(self, env: Any) -> None:
+        self.wrapped = env
         self.env = env.unwrapped
         self.action_space = env.action_space
 
@@ -262,7 +263,7 @@ class LoopOnly:
         return observation, float(scenario.reward()), terminated, False, {}
 
     def close(self) -> None:
-        pass
+        self.wrapped.close()
 
 
 PARTS = {
@@ -336,7 +337,6 @@ def hand_written(steps: int, rounds: int) -> None:
         breakdown(env_id, rates)
         for env in envs.values():
             env.close()
-        envs["loop only"].env.close()
 
 
 def breakdown(env_id: str, rates: dict[str, list[float]]) -> None:
